@@ -1,0 +1,270 @@
+"""PPO for hron-jax environments, PureJaxRL style: the whole training loop is one pure function.
+
+    ppo = make_ppo(config, env, network)
+    runner = ppo.init(rng)                                   # params, optimiser, envs, rng
+    runner, metrics = ppo.update_chunk(runner, n_updates)    # n_updates static; pure, jittable
+    runner, metrics = ppo.train(rng)                         # = init + config.num_updates updates
+    train = make_train(config, env, network)                 # same as ppo.train
+    runner, metrics = jax.jit(jax.vmap(train))(rngs)         # several seeds in one program
+
+env: any hron_jax.envs.base.Env (one env, no batch axis); it is wrapped in AutoResetWrapper unless it
+    already is one, and vmapped over config.num_envs.
+network: a flax module, ``network.apply(params, obs) -> (logits f32[B, A], value f32[B] or [B, 1])``
+    on a batch of observations (every obs leaf with a leading [B] axis).
+
+One update = a rollout of num_steps steps of num_envs envs (lax.scan over steps), GAE, then
+update_epochs passes over num_minibatches shuffled minibatches (lax.scan x lax.scan) of the clipped
+PPO objective + clipped value loss - entropy bonus, with global-norm gradient clipping and Adam.
+
+Termination vs truncation (as in Brax, but exact): an env step that truncates (time limit) is done,
+so the value of the next obs (already the reset obs) is not used; instead the rollout evaluates the
+value of the pre-reset final obs (AutoResetWrapper's info['final_obs']) and GAE bootstraps from it.
+That extra forward pass sits in a lax.cond on "any env truncated", so it costs nothing in the steps
+where no env truncates (under vmap over seeds the cond becomes a select and always runs).
+
+metrics (one entry per update, each f32[n_updates]): 'return', 'success', 'spl', 'path_length',
+'episode_length' are means over the episodes completed during that update's rollout (NaN when none
+completed), 'episodes' their count, 'reward' the mean per-step reward, 'env_steps' the cumulative
+number of env steps, and the loss terms averaged over epochs and minibatches.
+
+Everything is deterministic given the rng: chunked updates give the same result as one-shot training.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from hron_jax.envs.base import AutoResetWrapper
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    num_envs: int = 8
+    num_steps: int = 128            # rollout length per env per update
+    total_timesteps: int = 1_500_000
+    update_epochs: int = 4
+    num_minibatches: int = 4
+    lr: float = 2.5e-4
+    anneal_lr: bool = False         # linear decay to 0 over all optimiser steps
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.2
+    clip_value: bool = True         # PPO2-style clipped value loss (same clip_eps)
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    normalize_advantages: bool = True  # per minibatch
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.batch_size % self.num_minibatches:
+            raise ValueError(f'num_envs * num_steps = {self.batch_size} is not divisible by '
+                             f'num_minibatches = {self.num_minibatches}')
+        if self.num_updates < 1:
+            raise ValueError(f'total_timesteps = {self.total_timesteps} is less than one rollout '
+                             f'({self.batch_size} steps)')
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def minibatch_size(self) -> int:
+        return self.batch_size // self.num_minibatches
+
+    @property
+    def num_updates(self) -> int:
+        return self.total_timesteps // self.batch_size
+
+
+@struct.dataclass
+class RunnerState:
+    """Everything training carries between updates (a checkpoint is exactly this pytree)."""
+    params: Any
+    opt_state: Any
+    env_state: Any      # batched EnvState, leading axis num_envs
+    rng: jax.Array
+    update: jax.Array   # i32, number of updates done
+
+
+class Transition(NamedTuple):
+    obs: Any
+    action: jax.Array
+    log_prob: jax.Array
+    value: jax.Array
+    reward: jax.Array
+    done: jax.Array
+    truncation: jax.Array
+    final_value: jax.Array  # value of the pre-reset obs where truncation, else 0
+    metrics: dict
+
+
+class PPO(NamedTuple):
+    init: Callable          # rng -> RunnerState
+    update_chunk: Callable  # (RunnerState, n_updates: static int) -> (RunnerState, metrics)
+    train: Callable         # rng -> (RunnerState, metrics)
+    evaluate: Callable      # (params, rng, num_steps: static int, greedy: static bool) -> metrics
+    config: PPOConfig
+
+
+EPISODE_METRICS = ('return', 'success', 'spl', 'path_length', 'episode_length')
+
+
+def compute_gae(reward, value, done, truncation, final_value, last_value, gamma, gae_lambda):
+    """Advantages and value targets over a [T, B] rollout.
+
+    done = terminated or truncated. After a done step the next obs belongs to a new episode, so its
+    value is dropped; on truncation the episode was cut, not ended, so the value of its real last obs
+    (final_value) is bootstrapped instead.
+    """
+    def body(carry, t):
+        adv_next, value_next = carry
+        r, v, d, tr, fv = t
+        next_value = (1.0 - d) * value_next + tr * fv
+        delta = r + gamma * next_value - v
+        adv = delta + gamma * gae_lambda * (1.0 - d) * adv_next
+        return (adv, v), adv
+
+    init = (jnp.zeros_like(last_value), last_value)
+    _, adv = jax.lax.scan(body, init, (reward, value, done, truncation, final_value), reverse=True)
+    return adv, adv + value
+
+
+def _masked_episode_means(metrics: dict) -> dict:
+    """Means of the episode metrics over steps where an episode ended (NaN if none did)."""
+    mask = metrics['episode_done']
+    count = mask.sum()
+    out = {k: jnp.where(count > 0, (metrics[k] * mask).sum() / jnp.maximum(count, 1.0), jnp.nan)
+           for k in EPISODE_METRICS}
+    out['episodes'] = count
+    return out
+
+
+def make_ppo(config: PPOConfig, env, network) -> PPO:
+    if not isinstance(env, AutoResetWrapper):
+        env = AutoResetWrapper(env)
+    num_opt_steps = config.num_updates * config.update_epochs * config.num_minibatches
+    lr = (optax.linear_schedule(config.lr, 0.0, num_opt_steps) if config.anneal_lr else config.lr)
+    tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
+    v_reset = jax.vmap(env.reset)
+    v_step = jax.vmap(env.step)
+
+    def apply(params, obs):
+        logits, value = network.apply(params, obs)
+        return logits.astype(jnp.float32), jnp.reshape(value, logits.shape[:-1]).astype(jnp.float32)
+
+    def init(rng) -> RunnerState:
+        rng, k_params, k_env = jax.random.split(rng, 3)
+        env_state = v_reset(jax.random.split(k_env, config.num_envs))
+        params = network.init(k_params, env_state.obs)
+        return RunnerState(params=params, opt_state=tx.init(params), env_state=env_state, rng=rng,
+                           update=jnp.zeros((), jnp.int32))
+
+    def rollout(params, env_state, rng, num_steps, greedy=False):
+        def step(carry, _):
+            env_state, rng = carry
+            rng, k_act = jax.random.split(rng)
+            logits, value = apply(params, env_state.obs)
+            action = (jnp.argmax(logits, -1) if greedy else jax.random.categorical(k_act, logits))
+            log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], -1)[:, 0]
+            nxt = v_step(env_state, action)
+            truncation = nxt.info['truncation']
+            final_value = jax.lax.cond(
+                jnp.any(truncation > 0),
+                lambda: apply(params, nxt.info['final_obs'])[1] * truncation,
+                lambda: jnp.zeros_like(truncation))
+            tr = Transition(obs=env_state.obs, action=action, log_prob=log_prob, value=value,
+                            reward=nxt.reward, done=nxt.done, truncation=truncation,
+                            final_value=final_value, metrics=nxt.metrics)
+            return (nxt, rng), tr
+        (env_state, rng), traj = jax.lax.scan(step, (env_state, rng), None, length=num_steps)
+        return env_state, rng, traj
+
+    def loss_fn(params, mb: Transition, adv, target):
+        logits, value = apply(params, mb.obs)
+        logp_all = jax.nn.log_softmax(logits)
+        logp = jnp.take_along_axis(logp_all, mb.action[:, None], -1)[:, 0]
+        log_ratio = logp - mb.log_prob
+        ratio = jnp.exp(log_ratio)
+        if config.normalize_advantages:
+            adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+        pg_loss = -jnp.minimum(ratio * adv,
+                               jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * adv).mean()
+        v_err = jnp.square(value - target)
+        if config.clip_value:
+            v_clipped = mb.value + jnp.clip(value - mb.value, -config.clip_eps, config.clip_eps)
+            v_err = jnp.maximum(v_err, jnp.square(v_clipped - target))
+        value_loss = 0.5 * v_err.mean()
+        entropy = -(jnp.exp(logp_all) * logp_all).sum(-1).mean()
+        loss = pg_loss + config.vf_coef * value_loss - config.ent_coef * entropy
+        aux = {'loss': loss, 'pg_loss': pg_loss, 'value_loss': value_loss, 'entropy': entropy,
+               # k3 estimator of KL(old || new): non-negative, low variance.
+               'approx_kl': ((ratio - 1.0) - log_ratio).mean(),
+               'clip_frac': (jnp.abs(ratio - 1.0) > config.clip_eps).mean()}
+        return loss, aux
+
+    grad_fn = jax.grad(loss_fn, has_aux=True)
+
+    def one_update(runner: RunnerState, _):
+        env_state, rng, traj = rollout(runner.params, runner.env_state, runner.rng, config.num_steps)
+        _, last_value = apply(runner.params, env_state.obs)
+        adv, target = compute_gae(traj.reward, traj.value, traj.done, traj.truncation,
+                                  traj.final_value, last_value, config.gamma, config.gae_lambda)
+
+        # Flatten [T, B] -> [T*B]; the metrics are not needed by the loss.
+        batch = (traj._replace(metrics={}), adv, target)
+        batch = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), batch)
+
+        def epoch(carry, _):
+            params, opt_state, rng = carry
+            rng, k_perm = jax.random.split(rng)
+            perm = jax.random.permutation(k_perm, config.batch_size)
+            mbs = jax.tree.map(
+                lambda x: jnp.take(x, perm, axis=0).reshape(
+                    (config.num_minibatches, config.minibatch_size) + x.shape[1:]), batch)
+
+            def minibatch(carry, mb):
+                params, opt_state = carry
+                grads, aux = grad_fn(params, *mb)
+                updates, opt_state = tx.update(grads, opt_state, params)
+                return (optax.apply_updates(params, updates), opt_state), aux
+
+            (params, opt_state), aux = jax.lax.scan(minibatch, (params, opt_state), mbs)
+            return (params, opt_state, rng), aux
+
+        (params, opt_state, rng), aux = jax.lax.scan(
+            epoch, (runner.params, runner.opt_state, rng), None, length=config.update_epochs)
+
+        metrics = {k: v.mean() for k, v in aux.items()}
+        metrics.update(_masked_episode_means(traj.metrics))
+        metrics['reward'] = traj.reward.mean()
+        update = runner.update + 1
+        metrics['env_steps'] = (update * config.batch_size).astype(jnp.float32)
+        runner = RunnerState(params=params, opt_state=opt_state, env_state=env_state, rng=rng,
+                             update=update)
+        return runner, metrics
+
+    def update_chunk(runner: RunnerState, n_updates: int):
+        return jax.lax.scan(one_update, runner, None, length=n_updates)
+
+    def train(rng):
+        return update_chunk(init(rng), config.num_updates)
+
+    def evaluate(params, rng, num_steps: int, greedy: bool = True):
+        """Runs the policy (no learning) on fresh envs; episode means as in the training metrics."""
+        rng, k_env = jax.random.split(rng)
+        env_state = v_reset(jax.random.split(k_env, config.num_envs))
+        _, _, traj = rollout(params, env_state, rng, num_steps, greedy=greedy)
+        return _masked_episode_means(traj.metrics)
+
+    return PPO(init=init, update_chunk=update_chunk, train=train, evaluate=evaluate, config=config)
+
+
+def make_train(config: PPOConfig, env, network) -> Callable:
+    """PureJaxRL entry point: a pure ``train(rng) -> (RunnerState, metrics)``."""
+    return make_ppo(config, env, network).train
