@@ -1,0 +1,96 @@
+"""Model configuration (frozen dataclass) and the named variants of the paper.
+
+`ModelConfig` holds every size of the network; the variant fields (`gnn`, `pooling`,
+`node_features`, `goal_encoding`, `use_graph`, `use_map`) are set by `make_model(name, ...)` from
+`VARIANTS`, so a caller normally changes only sizes and `use_rgbd`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Sizes and switches of `ActorCritic`.
+
+    Graph branch
+        hidden: node embedding width of the featuriser and every GNN layer (paper release: 128).
+        heads: HGT attention heads (release: 2); `hidden` must be divisible by it.
+        gnn_layers: number of message-passing layers (release: 3), each followed by ReLU.
+        gnn: 'hgt' (heterogeneous graph transformer) or 'gcn' (Kipf & Welling, edges homogeneous).
+        pooling: 'task' (task-driven attention: indicator on goal categories) or 'mean' (live nodes).
+        pool_flag: append a 0/1 feature "the pooling mask selected at least one node", so the policy
+            can tell "nothing relevant seen yet" (pooled vector = 0) from a genuinely zero embedding.
+        node_features: 'learned' (category + node-type embeddings + linear(pos, size)) or
+            'word_vectors' (Yang et al.: frozen category word vectors + image code).
+        yang_image_code: width of the softmax image code appended to every node (Yang et al. used a
+            ResNet-50 softmax of the current frame; we use a learned softmax over the RGB-D embedding).
+    Image / map / goal branches
+        conv_features, conv_kernels, conv_strides: the 3 conv layers (SAME padding, ReLU).
+        cnn_fc: widths of the 3 FC layers after flattening (RGB-D and metric-map branches).
+        goal_fc: widths of the 3 FC layers of the goal MLP.
+        goal_encoding: 'one_hot' (obs['goal']) or 'word_vector' (Yang et al.: word vector of
+            obs['goal_classes'][0], the target object's class).
+    Fusion and heads
+        fusion_fc: widths of the 3 fusion FC layers; head_fc: widths of the 2 hidden layers of the
+            policy and of the value head (the third layer is the output layer).
+    Switches
+        use_rgbd: image branch on/off; off lets an observation lack 'rgbd' (symbolic choice task).
+        use_map: metric-map branch (obs['map']); use_graph: scene-graph branch (obs['graph']).
+    """
+
+    hidden: int = 128
+    heads: int = 2
+    gnn_layers: int = 3
+    gnn: Literal["hgt", "gcn"] = "hgt"
+    pooling: Literal["task", "mean"] = "task"
+    pool_flag: bool = True
+    node_features: Literal["learned", "word_vectors"] = "learned"
+    yang_image_code: int = 32
+
+    conv_features: tuple[int, int, int] = (32, 64, 64)
+    conv_kernels: tuple[int, int, int] = (8, 4, 3)
+    conv_strides: tuple[int, int, int] = (4, 2, 1)
+    cnn_fc: tuple[int, int, int] = (256, 128, 128)
+    goal_fc: tuple[int, int, int] = (128, 128, 128)
+    goal_encoding: Literal["one_hot", "word_vector"] = "one_hot"
+
+    fusion_fc: tuple[int, int, int] = (256, 256, 256)
+    head_fc: tuple[int, int] = (128, 128)
+
+    use_rgbd: bool = True
+    use_map: bool = False
+    use_graph: bool = True
+
+    def __post_init__(self):
+        if self.hidden % self.heads:
+            raise ValueError(f"hidden ({self.hidden}) must be divisible by heads ({self.heads})")
+        for field, allowed in (("gnn", ("hgt", "gcn")), ("pooling", ("task", "mean")),
+                               ("node_features", ("learned", "word_vectors")),
+                               ("goal_encoding", ("one_hot", "word_vector"))):
+            if getattr(self, field) not in allowed:
+                raise ValueError(f"ModelConfig.{field}={getattr(self, field)!r}; expected one of {allowed}")
+
+
+# Variant name -> the ModelConfig fields it fixes (everything else comes from the caller's config).
+VARIANTS: dict[str, dict] = {
+    # RGB-D only: image + goal, no scene representation.
+    "rgbd": dict(use_graph=False, use_map=False, goal_encoding="one_hot"),
+    # RGB-D + metric map: the map branch is a copy of the RGB-D branch's architecture.
+    "rgbd_mm": dict(use_graph=False, use_map=True, goal_encoding="one_hot"),
+    # RGB-D + scene graph, HGT, mean pooling (the "no attention" ablation).
+    "rgbd_sg": dict(use_graph=True, use_map=False, gnn="hgt", pooling="mean",
+                    node_features="learned", goal_encoding="one_hot"),
+    # Main model: RGB-D + scene graph, HGT, task-driven attention pooling.
+    "rgbd_sg_attn": dict(use_graph=True, use_map=False, gnn="hgt", pooling="task",
+                         node_features="learned", goal_encoding="one_hot"),
+    # Kipf et al.: GCN instead of HGT, everything else as the main model (incl. task pooling).
+    "gcn": dict(use_graph=True, use_map=False, gnn="gcn", pooling="task",
+                node_features="learned", goal_encoding="one_hot"),
+    # Yang et al.: GCN over word-vector node features (+ image code), goal = target word vector,
+    # no task-driven attention (their model has none): mean pooling.
+    "yang": dict(use_graph=True, use_map=False, gnn="gcn", pooling="mean",
+                 node_features="word_vectors", goal_encoding="word_vector"),
+}
