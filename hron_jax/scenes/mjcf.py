@@ -389,10 +389,11 @@ class SceneWriter:
             out.append(f'    <geom name="{name}" type="box" pos="{_vec((lo + hi) / 2)}" size="{_vec((hi - lo) / 2)}" '
                        f'rgba="{_vec(V.STRUCTURE_RGBA)}"/>')
         for name, c, h in self.doors:
-            out.append(f'    <site name="{name}" type="box" pos="{_vec(c)}" size="{_vec(h)}" rgba="0.2 0.8 0.2 0.2"/>')
+            out.append(f'    <site name="{name}" type="box" pos="{_vec(c)}" size="{_vec(h)}" rgba="0.2 0.8 0.2 0.2" '
+                       'group="4"/>')
         for k, (x, y, yaw) in enumerate(self.starts):
             out.append(f'    <site name="start:{k}" pos="{_vec((x, y, 0.1))}" euler="0 0 {_f(yaw)}" size="0.1" '
-                       'rgba="0.9 0.1 0.9 0.5"/>')
+                       'rgba="0.9 0.1 0.9 0.5" group="4"/>')
         for name, x, y, yaw, parts in self.furniture:
             out.append(f'    <body name="{name}" pos="{_vec((x, y, 0))}" euler="0 0 {_f(yaw)}">')
             slot_k: dict[str, int] = {}
