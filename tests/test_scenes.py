@@ -301,6 +301,21 @@ def test_errors_name_file_and_problem(tmp_path, xml, words):
         assert w in msg, msg
 
 
+def test_nested_and_rotated_bodies_use_world_frame(tmp_path):
+    p = tmp_path / "nested.xml"
+    p.write_text(_xml(_GOOD_ROOM + '<body name="furniture:cabinet:0" pos="1 0.5 0" euler="0 0 90">'
+                      '<geom type="box" pos="0 0 0.4" size="0.3 0.2 0.4"/>'
+                      '<body name="drawer" pos="0.5 0 0"><geom type="box" pos="0 0 0.1" size="0.1 0.1 0.1"/>'
+                      '<site name="furniture:cabinet:0:onTop:0" type="box" pos="0 0 0.3" size="0.1 0.1 0.1"/>'
+                      '</body></body>'))
+    s = load_scene(p)
+    f = s.index_of("furniture:cabinet:0")
+    assert list(s.geom_instance) == [0, f, f]
+    assert np.allclose(s.slot_center[0], (1.0, 1.0, 0.3)) and np.allclose(s.slot_half[0], 0.1)
+    assert np.allclose(s.geom_aabb_half[1], (0.2, 0.3, 0.4))  # rotated by 90 degrees
+    assert s.instance_room[f] == 0
+
+
 def test_missing_file_and_fixture():
     with pytest.raises(SceneError, match="file not found"):
         load_scene("/nonexistent/scene.xml")

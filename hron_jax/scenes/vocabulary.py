@@ -72,8 +72,10 @@ HOUSE_OBJECTS: tuple[str, ...] = tuple(o for o in OBJECTS if o not in SYMBOLIC_O
 RELATIONS: tuple[str, ...] = ("onTop", "inside", "under")
 ON_TOP, INSIDE, UNDER = 0, 1, 2
 
-# Node types of the scene graph.
+# Node types of the scene graph. FURNITURE is the category tuple, hence FURNITURE_NODE; the NODE_*
+# names are the same constants spelled uniformly.
 ROOM, FURNITURE_NODE, OBJECT = 0, 1, 2
+NODE_ROOM, NODE_FURNITURE, NODE_OBJECT = ROOM, FURNITURE_NODE, OBJECT
 NODE_TYPES: tuple[str, ...] = ("room", "furniture", "object")
 KINDS: tuple[str, ...] = NODE_TYPES
 
