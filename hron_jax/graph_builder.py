@@ -1,0 +1,196 @@
+"""Incremental scene graph with static shapes, built in pure JAX from segmentation every step.
+
+Role: turn what the agent has seen so far into the padded `jraph.GraphsTuple` the models read
+(paper, "Scene graph representation"; DESIGN.md step 4). Everything per step is jittable and
+vmappable; the only state is one boolean per node.
+
+Node table (N_MAX rows): every instance of the scene in the loader's order (rooms, furniture,
+objects of the pool), then padding. A node is *discovered* once its instance covers at least
+`min_pixels` pixels closer than `detect_range` in one frame (rooms: their floor seen, or the agent
+standing in them). Objects are nodes only while the episode uses them (`Placement.active`).
+
+Edge table (E_MAX rows), directed and typed as `hron_jax.graph_types`:
+    static:  furniture -inRoom-> room and the reverse; room -roomConnected-> room both ways;
+    episode: for each pool object, object -onTop/inside/under-> furniture, object -inRoom-> room,
+             and their reverses (filled from the episode's `Placement`, masked when inactive).
+An edge is live only when both ends are discovered. Padded and dead edges point at node 0 with
+mask False, so they can never leak into message passing (the models mask by `edges['mask']`).
+
+Node features (nodes dict of the GraphsTuple, shapes for one env):
+    category  i32[N]    semantic class id (vocabulary.class_id)
+    node_type i32[N]    0 room, 1 furniture, 2 object
+    pos       f32[N,3]  centre in the agent frame: x ahead, y left, z up (so the agent knows where
+                        it is relative to each node)
+    size      f32[N,3]  axis-aligned half extents
+    mask      bool[N]   discovered and real
+Pre-mapping (`premap=True`): rooms and furniture start discovered; objects never do.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import jraph
+import numpy as np
+
+from . import graph_types as T
+from .scenes import vocabulary as V
+from .scenes.loader import Scene, room_at
+
+
+@dataclasses.dataclass(frozen=True)
+class GraphConfig:
+    """Static graph-builder settings (hashable)."""
+
+    max_nodes: Optional[int] = None  # N_MAX; None = the scene's node count
+    max_edges: Optional[int] = None  # E_MAX; None = the scene's edge capacity
+    min_pixels: int = 2              # pixels of one instance in one frame to discover it
+    detect_range: float = 6.0        # m; farther pixels do not count (a detector's range)
+    premap: bool = False             # rooms and furniture discovered from the start
+
+
+class Placement(NamedTuple):
+    """Per-episode pose and relation of each pool object (O = scene.num_objects).
+
+    active    bool[O]    used in this episode (target or distractor)
+    pos       f32[O,3]   world centre
+    furniture i32[O]     node index of the furniture it relates to (-1 if none)
+    relation  i32[O]     vocabulary relation index (0 onTop, 1 inside, 2 under)
+    """
+
+    active: jax.Array
+    pos: jax.Array
+    furniture: jax.Array
+    relation: jax.Array
+
+    @staticmethod
+    def empty(num_objects: int) -> "Placement":
+        return Placement(active=jnp.zeros((num_objects,), bool), pos=jnp.zeros((num_objects, 3)),
+                         furniture=jnp.full((num_objects,), -1, jnp.int32),
+                         relation=jnp.zeros((num_objects,), jnp.int32))
+
+
+# vocabulary relation index -> (forward edge type, reverse edge type)
+_RELATION_EDGES = np.array([[T.ON_TOP, T.REV_ON_TOP], [T.INSIDE, T.REV_INSIDE], [T.UNDER, T.REV_UNDER]],
+                           np.int32)
+assert V.RELATIONS == ("onTop", "inside", "under")
+
+
+class GraphBuilder:
+    """Static tables of one scene + pure functions `reset`, `update`, `graph`."""
+
+    def __init__(self, scene: Scene, config: GraphConfig = GraphConfig()):
+        self.config = config
+        n_real = scene.num_nodes
+        self.num_objects = scene.num_objects
+        self.object_offset = scene.num_rooms + scene.num_furniture
+        n_max = config.max_nodes or n_real
+        if n_max < n_real:
+            raise ValueError(f"GraphConfig.max_nodes={n_max} is smaller than the {n_real} instances of "
+                             f"{scene.path}; raise it or leave it None")
+        self.max_nodes = n_max
+
+        def pad(a, fill=0):
+            a = np.asarray(a)
+            out = np.full((n_max,) + a.shape[1:], fill, a.dtype)
+            out[:n_real] = a
+            return out
+
+        self.real = jnp.asarray(pad(np.ones(n_real, bool), False))
+        self.node_type = jnp.asarray(pad(scene.node_type.astype(np.int32)))
+        self.category = jnp.asarray(pad(scene.category.astype(np.int32)))
+        self.static_center = jnp.asarray(pad(scene.aabb_center.astype(np.float32)))
+        half = scene.aabb_half.astype(np.float32).copy()
+        half[self.object_offset:] = V.OBJECT_HALF[scene.vocab_index[self.object_offset:]]
+        self.static_half = jnp.asarray(pad(half))
+        self.instance_room = jnp.asarray(pad(scene.instance_room.astype(np.int32), -1))
+        self.is_room = self.real & (self.node_type == T.ROOM)
+        self.is_object = self.real & (self.node_type == T.OBJECT)
+        self.premap_mask = self.real & (self.node_type != T.OBJECT)
+        self.room_floors = jnp.asarray(scene.room_floors.astype(np.float32))
+
+        # Static edges: furniture <-> its room, room <-> adjacent room.
+        s, r, t = [], [], []
+        for f in range(scene.num_rooms, self.object_offset):
+            room = int(scene.instance_room[f])
+            s += [f, room]; r += [room, f]; t += [T.IN_ROOM, T.REV_IN_ROOM]
+        for a, b in zip(*np.nonzero(np.triu(scene.room_adjacency, 1))):
+            s += [a, b]; r += [b, a]; t += [T.ROOM_CONNECTED] * 2
+        self.num_static_edges = len(s)
+        e_cap = self.num_static_edges + 4 * self.num_objects
+        e_max = config.max_edges or e_cap
+        if e_max < e_cap:
+            raise ValueError(f"GraphConfig.max_edges={e_max} is smaller than the {e_cap} possible edges of "
+                             f"{scene.path}; raise it or leave it None")
+        self.max_edges = e_max
+        self.static_senders = jnp.asarray(np.array(s, np.int32))
+        self.static_receivers = jnp.asarray(np.array(r, np.int32))
+        self.static_types = jnp.asarray(np.array(t, np.int32))
+
+    # ---- state ------------------------------------------------------------------------------
+    def reset(self, placement: Placement, pose: jax.Array) -> jax.Array:
+        """Discovered mask bool[N_MAX] at the start of an episode (before the first frame)."""
+        del placement
+        disc = self.premap_mask if self.config.premap else jnp.zeros_like(self.real)
+        return disc | self._agent_room(pose)
+
+    def update(self, discovered: jax.Array, placement: Placement, pose: jax.Array,
+               instance: jax.Array, depth: jax.Array) -> jax.Array:
+        """Add what one frame shows. instance i32[H,W] (-1 none), depth f32[H,W] (m)."""
+        valid = (instance >= 0) & (depth < self.config.detect_range)
+        idx = jnp.where(valid, instance, 0).reshape(-1)
+        counts = jnp.zeros((self.max_nodes,), jnp.int32).at[idx].add(valid.reshape(-1).astype(jnp.int32))
+        seen = counts >= self.config.min_pixels
+        return (discovered | seen | self._agent_room(pose)) & self.real & self._node_active(placement)
+
+    def _agent_room(self, pose):
+        room = room_at(self.room_floors, pose[:2], jnp)
+        return self.is_room & (jnp.arange(self.max_nodes) == room)
+
+    def _node_active(self, placement: Placement):
+        obj_active = jnp.zeros((self.max_nodes,), bool).at[self.object_offset + jnp.arange(self.num_objects)].set(
+            placement.active)
+        return ~self.is_object | obj_active
+
+    # ---- output -----------------------------------------------------------------------------
+    def graph(self, discovered: jax.Array, placement: Placement, pose: jax.Array) -> jraph.GraphsTuple:
+        """The padded scene graph seen from `pose` (x, y, yaw)."""
+        obj = self.object_offset + jnp.arange(self.num_objects)
+        center = self.static_center.at[obj].set(placement.pos.astype(jnp.float32))
+        c, s_ = jnp.cos(pose[2]), jnp.sin(pose[2])
+        d = center[:, :2] - pose[:2]
+        pos = jnp.stack([c * d[:, 0] + s_ * d[:, 1], -s_ * d[:, 0] + c * d[:, 1], center[:, 2]], -1)
+        mask = discovered & self.real & self._node_active(placement)
+
+        # Episode edges of the pool objects: 4 per object, masked when the object is not placed.
+        furn = jnp.maximum(placement.furniture, 0)
+        room = self.instance_room[furn]
+        rel = jnp.asarray(_RELATION_EDGES)[jnp.clip(placement.relation, 0, 2)]
+        has = placement.active & (placement.furniture >= 0)
+        dyn_s = jnp.stack([obj, furn, obj, room], -1).reshape(-1)
+        dyn_r = jnp.stack([furn, obj, room, obj], -1).reshape(-1)
+        dyn_t = jnp.stack([rel[:, 0], rel[:, 1], jnp.full_like(obj, T.IN_ROOM),
+                           jnp.full_like(obj, T.REV_IN_ROOM)], -1).reshape(-1)
+        dyn_ok = jnp.repeat(has, 4)
+
+        n_pad = self.max_edges - self.num_static_edges - 4 * self.num_objects
+        zeros = jnp.zeros((n_pad,), jnp.int32)
+        senders = jnp.concatenate([self.static_senders, dyn_s, zeros])
+        receivers = jnp.concatenate([self.static_receivers, dyn_r, zeros])
+        etype = jnp.concatenate([self.static_types, dyn_t, zeros])
+        ok = jnp.concatenate([jnp.ones((self.num_static_edges,), bool), dyn_ok, jnp.zeros((n_pad,), bool)])
+        live = ok & mask[senders] & mask[receivers]
+        senders = jnp.where(live, senders, 0)
+        receivers = jnp.where(live, receivers, 0)
+        etype = jnp.where(live, etype, 0)
+        return jraph.GraphsTuple(
+            nodes={'category': self.category, 'node_type': self.node_type, 'pos': pos,
+                   'size': self.static_half, 'mask': mask},
+            edges={'edge_type': etype, 'mask': live},
+            senders=senders, receivers=receivers,
+            n_node=jnp.array([self.max_nodes], jnp.int32), n_edge=jnp.array([self.max_edges], jnp.int32),
+            globals=None)
+
