@@ -108,7 +108,8 @@ class HGTConv(nn.Module):
     Inputs: x f32[N, F_in], node_type i32[N], node_mask bool[N], senders/receivers i32[E],
         relation i32[E] (`edge_relations`, -1 = no relation), edge_mask bool[E].
     Output: f32[N, features]. Sows the attention alpha f32[E, H] (0 on dead edges) as
-    ('attention', 'alpha'), collected only when the caller makes 'attention' mutable.
+    ('attention', 'alpha'), collected only when the caller makes 'attention' mutable (and never
+    during init, so `init` returns parameters only, valid for single and batched apply).
 
     Parameters: kqv_kernel [T, F_in, 3F], kqv_bias [T, 3F] (k | q | v blocks), k_rel / v_rel
     [R, H, D, D], p_rel [R, H] (init 1), out_kernel [T, F, F], out_bias [T, F], skip [T] (init 1).
@@ -151,14 +152,18 @@ class HGTConv(nn.Module):
         v_e = v_all[senders, rel]
         score = jnp.sum(q[receivers] * k_e, axis=-1) * p_rel[rel] / math.sqrt(d)
         alpha = masked_segment_softmax(score, live, receivers, n)
-        self.sow("attention", "alpha", alpha)
+        if not self.is_initializing():  # keep init's variables free of sown values (batch-agnostic)
+            self.sow("attention", "alpha", alpha)
 
-        agg = jax.ops.segment_sum(v_e * alpha[..., None], receivers, n).reshape(n, f)
+        # where() rather than a product with alpha = 0: a non-finite value on a dead node
+        # (0 * inf = NaN) must not reach a live one.
+        msg = jnp.where(live[:, None, None], v_e * alpha[..., None], 0.0)
+        agg = jax.ops.segment_sum(msg, receivers, n).reshape(n, f)
         out = _typed_dense(jax.nn.gelu(agg, approximate=False), ntype, out_kernel, out_bias)
         if f_in == f:
             gate = jax.nn.sigmoid(skip[ntype])[:, None]
             out = gate * out + (1.0 - gate) * x
-        return out * node_mask[:, None].astype(out.dtype)
+        return jnp.where(node_mask[:, None], out, 0.0)
 
 
 class GCNConv(nn.Module):
@@ -191,7 +196,8 @@ class GCNConv(nn.Module):
         # deg is 0 only for dead nodes; guard the rsqrt so neither value nor gradient is inf.
         dis = jnp.where(deg > 0, jax.lax.rsqrt(jnp.where(deg > 0, deg, 1.0)), 0.0)
         norm = dis[senders] * w * dis[receivers]
-        out = jax.ops.segment_sum(norm[:, None] * hx[senders], receivers, n)
+        msg = jnp.where(live[:, None], norm[:, None] * hx[senders], 0.0)  # no 0 * inf leaks
+        out = jax.ops.segment_sum(msg, receivers, n)
         out = out + (dis * dis * loop)[:, None] * hx
         out = out + bias
-        return out * node_mask[:, None].astype(out.dtype)
+        return jnp.where(node_mask[:, None], out, 0.0)

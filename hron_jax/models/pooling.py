@@ -33,7 +33,8 @@ def weighted_mean_pool(h, weights):
     """
     w = weights.astype(h.dtype)
     total = jnp.sum(w)
-    pooled = jnp.sum(w[:, None] * h, axis=0) / jnp.maximum(total, 1.0)
+    # where() so that a non-finite row with weight 0 cannot turn the sum into NaN.
+    pooled = jnp.sum(jnp.where(w[:, None] > 0, w[:, None] * h, 0.0), axis=0) / jnp.maximum(total, 1.0)
     return pooled, total > 0
 
 

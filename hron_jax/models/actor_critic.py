@@ -1,0 +1,138 @@
+"""Actor-critic network of the paper and its baselines, selectable by name with `make_model`.
+
+    obs -> [RGB-D CNN] [metric-map CNN] [scene-graph GNN + pooling] [goal MLP]  (per variant)
+        -> concat -> fusion (3 FC) -> policy head (3 FC) -> logits f32[num_actions]
+                                   -> value head  (3 FC) -> value  f32[]
+
+Batching: `ActorCritic.__call__` accepts one observation or a batch. When obs['goal'] has a
+leading batch axis ([B, G]) the single-observation network is mapped over it with `nn.vmap`
+(parameters shared), giving logits f32[B, A] and value f32[B]. Parameters are identical in both
+modes (both live under 'core'), so init on one observation and apply on a batch, or vice versa.
+
+Attention readout: HGT attention per layer/head/edge and the pooling weights are sown into the
+'attention' collection. Training calls `apply(variables, obs)` and pays nothing for it; analysis
+calls `apply(variables, obs, mutable=['attention'])` and gets them back
+(see `attention_readout`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import flax.linen as nn
+
+from hron_jax.models.config import VARIANTS, ModelConfig
+from hron_jax.models.encoders import MLP, ConvEncoder, SceneGraphEncoder
+from hron_jax.models.word_vectors import load_category_vectors
+
+
+def _rgbd(obs):
+    """obs['rgbd'], or rgb and depth concatenated when an env gives them apart (choice task)."""
+    if "rgbd" in obs:
+        return obs["rgbd"]
+    if "rgb" in obs and "depth" in obs:
+        return jnp.concatenate([obs["rgb"], obs["depth"]], axis=-1)
+    raise KeyError("the model uses the RGB-D branch (use_rgbd=True) but obs has no 'rgbd' "
+                   "(nor 'rgb' + 'depth'); build it with ModelConfig(use_rgbd=False) if the "
+                   "task has no image")
+
+
+class _ActorCriticCore(nn.Module):
+    """The network on ONE observation (no batch axis). See module docstring."""
+
+    num_actions: int
+    num_classes: int
+    config: ModelConfig
+
+    @nn.compact
+    def __call__(self, obs):
+        cfg = self.config
+        feats = []
+        img = None
+        conv = dict(features=cfg.conv_features, kernels=cfg.conv_kernels,
+                    strides=cfg.conv_strides, fc=cfg.cnn_fc)
+        if cfg.use_rgbd:
+            img = ConvEncoder(**conv, name="rgbd_encoder")(_rgbd(obs))
+            feats.append(img)
+        if cfg.use_map:
+            feats.append(ConvEncoder(**conv, name="map_encoder")(obs["map"]))
+
+        word_vectors = None
+        if cfg.node_features == "word_vectors" or cfg.goal_encoding == "word_vector":
+            word_vectors = load_category_vectors(self.num_classes)
+        if cfg.use_graph:
+            feats.append(SceneGraphEncoder(cfg, self.num_classes, name="graph_encoder")(
+                obs["graph"], obs.get("goal_classes"), img, word_vectors))
+
+        if cfg.goal_encoding == "one_hot":
+            goal = obs["goal"]
+        else:
+            # Yang et al.: the goal is the word vector of the target object category (0 if absent).
+            target = obs["goal_classes"][0]
+            table = jnp.asarray(word_vectors)
+            goal = jnp.where(target >= 0, table[jnp.clip(target, 0, table.shape[0] - 1)], 0.0)
+        feats.append(MLP(cfg.goal_fc, name="goal_encoder")(goal.astype(jnp.float32)))
+
+        z = MLP(cfg.fusion_fc, name="fusion")(jnp.concatenate(feats, axis=-1))
+        logits = MLP(cfg.head_fc, name="policy_hidden")(z)
+        logits = nn.Dense(self.num_actions, kernel_init=nn.initializers.orthogonal(0.01),
+                          name="policy_out")(logits)
+        value = MLP(cfg.head_fc, name="value_hidden")(z)
+        value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0), name="value_out")(value)
+        return logits, value[0]
+
+
+class ActorCritic(nn.Module):
+    """Policy and value network. `apply(variables, obs) -> (logits, value)`.
+
+    Fields: num_actions, num_classes (semantic class vocabulary size, NUM_CLASSES), config.
+    obs: one observation dict (logits f32[A], value f32[]) or a batch with a leading axis on
+    every leaf (logits f32[B, A], value f32[B]); batch is detected from obs['goal'].ndim == 2.
+    """
+
+    num_actions: int
+    num_classes: int
+    config: ModelConfig = ModelConfig()
+
+    @nn.compact
+    def __call__(self, obs):
+        core = _ActorCriticCore
+        if jnp.ndim(obs["goal"]) == 2:
+            core = nn.vmap(_ActorCriticCore, in_axes=0, out_axes=0,
+                           variable_axes={"params": None, "attention": 0, "intermediates": 0},
+                           split_rngs={"params": False})
+        return core(self.num_actions, self.num_classes, self.config, name="core")(obs)
+
+
+def make_model(name: str, num_actions: int, config: ModelConfig | None = None,
+               num_classes: int | None = None) -> ActorCritic:
+    """The `ActorCritic` of a named variant (see config.VARIANTS).
+
+    name: 'rgbd', 'rgbd_mm', 'rgbd_sg', 'rgbd_sg_attn' (main), 'gcn' (Kipf), 'yang' (Yang et al.).
+    config: sizes and use_rgbd; the variant's own fields override it. num_classes defaults to
+    hron_jax.scenes.vocabulary.NUM_CLASSES.
+    """
+    if name not in VARIANTS:
+        raise ValueError(f"unknown model {name!r}; valid names: {', '.join(VARIANTS)}")
+    if num_classes is None:
+        from hron_jax.scenes import vocabulary
+
+        num_classes = vocabulary.NUM_CLASSES
+    cfg = dataclasses.replace(config or ModelConfig(), **VARIANTS[name])
+    return ActorCritic(num_actions=num_actions, num_classes=int(num_classes), config=cfg)
+
+
+def attention_readout(model: ActorCritic, variables, obs):
+    """Run the model once and return (logits, value, attention) for analysis (not for training).
+
+    attention: nested dict mirroring the module tree, e.g.
+        attention['core']['graph_encoder']['hgt_0']['alpha'] -> (f32[(B,) E, heads],)
+        attention['core']['graph_encoder']['pool_weights']   -> (f32[(B,) N],)
+    (flax `sow` stores a 1-tuple per call). Empty for variants without a graph.
+    """
+    (logits, value), state = model.apply(variables, obs, mutable=["attention"])
+    return logits, value, state.get("attention", {})
+
+
+__all__ = ["ActorCritic", "ModelConfig", "make_model", "attention_readout", "VARIANTS"]

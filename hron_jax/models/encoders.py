@@ -1,0 +1,167 @@
+"""Encoders of the observation branches: MLP, conv image encoder, node featurisers, scene graph.
+
+All modules take ONE observation (no batch axis); `ActorCritic` vmaps them over a batch.
+
+- `MLP`: Dense + ReLU per width.                                f32[I] -> f32[widths[-1]]
+- `ConvEncoder`: 3 conv (SAME padding, ReLU), flatten, 3 FC.     f32[H, W, C] -> f32[fc[-1]]
+  (RGB-D branch, and the metric-map branch of `rgbd_mm`, which the paper makes identical.)
+- `NodeFeaturizer`: category embedding + node-type embedding + linear(pos, size).
+                                                                 graph nodes -> f32[N, hidden]
+- `WordVectorNodeFeaturizer` (Yang et al.): linear of [word vector of the category, image code].
+                                                                 graph nodes -> f32[N, hidden]
+- `SceneGraphEncoder`: featuriser, `gnn_layers` x (HGTConv | GCNConv, ReLU), task-driven or mean
+  pooling.                                                       GraphsTuple -> f32[hidden (+1)]
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import flax.linen as nn
+import numpy as np
+
+from hron_jax import graph_types as gt
+from hron_jax.models import pooling
+from hron_jax.models.config import ModelConfig
+from hron_jax.models.gnn import GCNConv, HGTConv, edge_relations
+
+# PPO-style orthogonal init (PureJaxRL): sqrt(2) gain for ReLU layers.
+RELU_INIT = nn.initializers.orthogonal(np.sqrt(2.0))
+
+
+class MLP(nn.Module):
+    """Stack of Dense layers, each followed by ReLU. f32[..., I] -> f32[..., widths[-1]]."""
+
+    widths: Sequence[int]
+
+    @nn.compact
+    def __call__(self, x):
+        for w in self.widths:
+            x = nn.relu(nn.Dense(w, kernel_init=RELU_INIT)(x))
+        return x
+
+
+class ConvEncoder(nn.Module):
+    """3 conv layers (ReLU), flatten, 3 FC layers (ReLU). f32[H, W, C] -> f32[fc[-1]].
+
+    SAME padding keeps the encoder valid for any image size (small CPU images included); the
+    flatten size follows from the static image shape.
+    """
+
+    features: Sequence[int]
+    kernels: Sequence[int]
+    strides: Sequence[int]
+    fc: Sequence[int]
+
+    @nn.compact
+    def __call__(self, img):
+        x = img[None]  # flax Conv wants a batch axis; ActorCritic vmaps over the real one.
+        for f, k, s in zip(self.features, self.kernels, self.strides):
+            x = nn.relu(nn.Conv(f, (k, k), strides=(s, s), padding="SAME", kernel_init=RELU_INIT)(x))
+        return MLP(self.fc)(x.reshape(-1))
+
+
+def _node_arrays(graph):
+    """(category, node_type, pos, size, mask) of a padded jraph graph (see models/__init__)."""
+    n = graph.nodes
+    return n["category"], n["node_type"], n["pos"], n["size"], n["mask"].astype(bool)
+
+
+class NodeFeaturizer(nn.Module):
+    """Learned node features: Embed(category) + Embed(node_type) + Dense([pos, size]).
+
+    Input: graph nodes (category i32[N], node_type i32[N], pos f32[N,3], size f32[N,3], mask).
+    Output: f32[N, features], zero on dead nodes. Out-of-range ids (padding garbage) are clipped.
+    """
+
+    num_classes: int
+    features: int
+
+    @nn.compact
+    def __call__(self, category, node_type, pos, size, mask):
+        cat = jnp.clip(category, 0, self.num_classes - 1)
+        nt = jnp.clip(node_type, 0, gt.NUM_NODE_TYPES - 1)
+        # Zero the geometry of dead rows before the Dense: garbage there (even NaN) would
+        # otherwise poison the kernel's gradient (0 * NaN) although the output is masked.
+        geom = jnp.where(mask[:, None], jnp.concatenate([pos, size], -1), 0.0)
+        h = (nn.Embed(self.num_classes, self.features, name="category_embed")(cat)
+             + nn.Embed(gt.NUM_NODE_TYPES, self.features, name="type_embed")(nt)
+             + nn.Dense(self.features, name="geometry")(geom))
+        return jnp.where(mask[:, None], h, 0.0)
+
+
+class WordVectorNodeFeaturizer(nn.Module):
+    """Yang et al. node features: Dense([word_vector(category), image_code]).
+
+    word_vectors: f32[num_classes, W] constant table (not trained), see word_vectors.py.
+    image_code: optional f32[K] (a softmax code of the current image), broadcast to every node,
+    standing in for Yang et al.'s ResNet-50 softmax of the current frame.
+    Output: f32[N, features], zero on dead nodes.
+    """
+
+    features: int
+
+    @nn.compact
+    def __call__(self, word_vectors, category, mask, image_code=None):
+        table = jnp.asarray(word_vectors)
+        wv = table[jnp.clip(category, 0, table.shape[0] - 1)]
+        if image_code is not None:
+            wv = jnp.concatenate([wv, jnp.broadcast_to(image_code, (wv.shape[0],) + image_code.shape)], -1)
+        h = nn.Dense(self.features)(wv)
+        return jnp.where(mask[:, None], h, 0.0)
+
+
+class SceneGraphEncoder(nn.Module):
+    """Scene-graph branch: node features -> GNN stack -> pooled graph vector.
+
+    Inputs: graph (jraph.GraphsTuple of one padded graph, nodes/edges dicts as in the observation
+    contract), goal_classes i32[K] (used by task pooling), image_embedding f32[I] or None (used by
+    the word-vector featuriser only), word_vectors (the Yang table, only for that featuriser).
+    Output: f32[hidden + pool_flag]. Sows ('attention', 'pool_weights') f32[N] and, per HGT layer,
+    ('attention', 'alpha') f32[E, heads].
+    """
+
+    config: ModelConfig
+    num_classes: int
+
+    @nn.compact
+    def __call__(self, graph, goal_classes=None, image_embedding=None, word_vectors=None):
+        cfg = self.config
+        category, node_type, pos, size, mask = _node_arrays(graph)
+        senders, receivers = graph.senders, graph.receivers
+        edge_type = graph.edges["edge_type"]
+        edge_mask = graph.edges["mask"].astype(bool)
+
+        if cfg.node_features == "learned":
+            h = NodeFeaturizer(self.num_classes, cfg.hidden, name="featurizer")(
+                category, node_type, pos, size, mask)
+        else:
+            code = None
+            if image_embedding is not None:
+                code = nn.softmax(nn.Dense(cfg.yang_image_code, name="image_code")(image_embedding))
+            h = WordVectorNodeFeaturizer(cfg.hidden, name="featurizer")(
+                word_vectors, category, mask, code)
+
+        if cfg.gnn == "hgt":
+            relation = edge_relations(node_type, senders, receivers, edge_type)
+        for i in range(cfg.gnn_layers):
+            if cfg.gnn == "hgt":
+                h = HGTConv(cfg.hidden, cfg.heads, name=f"hgt_{i}")(
+                    h, node_type, mask, senders, receivers, relation, edge_mask)
+            else:
+                h = GCNConv(cfg.hidden, name=f"gcn_{i}")(h, mask, senders, receivers, edge_mask)
+            h = nn.relu(h)
+
+        if cfg.pooling == "task":
+            if goal_classes is None:
+                raise ValueError("task-driven pooling needs obs['goal_classes']")
+            pooled, w, selected = pooling.task_driven_pool(h, category, mask, goal_classes)
+        else:
+            pooled, w, selected = pooling.mean_pool(h, mask)
+        if not self.is_initializing():  # init returns params only (see HGTConv)
+            self.sow("attention", "pool_weights", w)
+        if cfg.pool_flag:
+            pooled = jnp.concatenate([pooled, selected.astype(pooled.dtype)[None]])
+        return pooled
