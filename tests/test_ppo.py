@@ -176,14 +176,19 @@ def small_ppo():
                     TinyGraphNet(2, hidden=16))
 
 
+@pytest.fixture(scope='module')
+def single_train(small_ppo):
+    return jax.jit(small_ppo.train)
+
+
 def _max_diff(a, b):
     return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
 
 
-def test_vmapped_seeds_match_single_runs(small_ppo):
+def test_vmapped_seeds_match_single_runs(small_ppo, single_train):
     keys = jax.random.split(jax.random.PRNGKey(42), 2)
     runners, metrics = jax.jit(jax.vmap(small_ppo.train))(keys)
-    single = jax.jit(small_ppo.train)
+    single = single_train
     for i in range(2):
         r, m = single(keys[i])
         assert _max_diff(jax.tree.map(lambda x: x[i], runners.params), r.params) < 1e-5
@@ -195,9 +200,9 @@ def test_vmapped_seeds_match_single_runs(small_ppo):
     assert _max_diff(again.params, single(keys[0])[0].params) == 0.0
 
 
-def test_chunked_updates_equal_one_shot(small_ppo):
+def test_chunked_updates_equal_one_shot(small_ppo, single_train):
     key = jax.random.PRNGKey(7)
-    full, full_m = jax.jit(small_ppo.train)(key)
+    full, full_m = single_train(key)
     chunk = jax.jit(small_ppo.update_chunk, static_argnums=1)
     runner = jax.jit(small_ppo.init)(key)
     ms = []
