@@ -2,27 +2,42 @@
 
 Role: turn what the agent has seen so far into the padded `jraph.GraphsTuple` the models read
 (paper, "Scene graph representation"; DESIGN.md step 4). Everything per step is jittable and
-vmappable; the only state is one boolean per node.
+vmappable; the only state is one boolean per node:
+
+    gb = GraphBuilder(scene, GraphConfig())
+    disc = gb.reset(placement, pose)                                # bool[N_MAX]
+    disc = gb.update(disc, placement, pose, frame.instance, frame.depth)
+    g = gb.graph(disc, placement, pose)                             # jraph.GraphsTuple
 
 Node table (N_MAX rows): every instance of the scene in the loader's order (rooms, furniture,
 objects of the pool), then padding. A node is *discovered* once its instance covers at least
-`min_pixels` pixels closer than `detect_range` in one frame (rooms: their floor seen, or the agent
-standing in them). Objects are nodes only while the episode uses them (`Placement.active`).
+`min_pixels` pixels whose depth is below `detect_range` in one frame (depth is the camera's
+z-depth along the optical axis, so the range is a slab in front of the camera, not a sphere).
+A room is discovered like any instance when enough of its floor is seen, or when the agent
+stands in it (entered). Objects are nodes only while the episode uses them (`Placement.active`).
 
 Edge table (E_MAX rows), directed and typed as `hron_jax.graph_types`:
     static:  furniture -inRoom-> room and the reverse; room -roomConnected-> room both ways;
-    episode: for each pool object, object -onTop/inside/under-> furniture, object -inRoom-> room,
-             and their reverses (filled from the episode's `Placement`, masked when inactive).
-An edge is live only when both ends are discovered. Padded and dead edges point at node 0 with
-mask False, so they can never leak into message passing (the models mask by `edges['mask']`).
+    episode: for each pool object, object -onTop/inside/under-> furniture and the reverse (when it
+             has a furniture), object -inRoom-> room and the reverse (the furniture's room, or the
+             room containing the object when it has no furniture); masked when inactive.
+An edge is live only when both ends are discovered. Dead and padded edges point at node 0 with
+type 0 and mask False, so they can never leak into message passing (the models mask by
+`edges['mask']`).
 
 Node features (nodes dict of the GraphsTuple, shapes for one env):
     category  i32[N]    semantic class id (vocabulary.class_id)
     node_type i32[N]    0 room, 1 furniture, 2 object
-    pos       f32[N,3]  centre in the agent frame: x ahead, y left, z up (so the agent knows where
-                        it is relative to each node)
-    size      f32[N,3]  axis-aligned half extents
+    pos       f32[N,3]  AABB centre in the agent frame: x ahead, y left, z up from the floor (so the
+                        agent knows where it is relative to each node)
+    size      f32[N,3]  half extents of the world AABB (objects: their category's half extents);
+                        a property of the instance, so it does not change when the agent turns
     mask      bool[N]   discovered and real
+Rows that are not live (undiscovered, inactive objects, padding) have every feature zeroed: the
+observation never carries the position of something the agent has not seen (the target included),
+and outputs do not depend on N_MAX / E_MAX beyond the padded rows.
+The scene has no articulated states (cavities are open, nothing toggles), so there is no state
+feature beyond pose and size.
 Pre-mapping (`premap=True`): rooms and furniture start discovered; objects never do.
 """
 
@@ -159,22 +174,29 @@ class GraphBuilder:
     def graph(self, discovered: jax.Array, placement: Placement, pose: jax.Array) -> jraph.GraphsTuple:
         """The padded scene graph seen from `pose` (x, y, yaw)."""
         obj = self.object_offset + jnp.arange(self.num_objects)
-        center = self.static_center.at[obj].set(placement.pos.astype(jnp.float32))
+        obj_pos = placement.pos.astype(jnp.float32)
+        center = self.static_center.at[obj].set(obj_pos)
         c, s_ = jnp.cos(pose[2]), jnp.sin(pose[2])
         d = center[:, :2] - pose[:2]
         pos = jnp.stack([c * d[:, 0] + s_ * d[:, 1], -s_ * d[:, 0] + c * d[:, 1], center[:, 2]], -1)
         mask = discovered & self.real & self._node_active(placement)
 
-        # Episode edges of the pool objects: 4 per object, masked when the object is not placed.
+        # Episode edges of the pool objects: 4 per object. The relation pair needs a furniture; the
+        # inRoom pair uses the furniture's room, or the room under the object when it has none (a
+        # placed object is always in some room, so it must not float unconnected).
+        has_furn = placement.furniture >= 0
         furn = jnp.maximum(placement.furniture, 0)
-        room = self.instance_room[furn]
+        room = jnp.where(has_furn, self.instance_room[furn],
+                         room_at(self.room_floors, obj_pos[:, :2], jnp))
         rel = jnp.asarray(_RELATION_EDGES)[jnp.clip(placement.relation, 0, 2)]
-        has = placement.active & (placement.furniture >= 0)
+        room_ok = placement.active & (room >= 0)
+        room = jnp.maximum(room, 0)
         dyn_s = jnp.stack([obj, furn, obj, room], -1).reshape(-1)
         dyn_r = jnp.stack([furn, obj, room, obj], -1).reshape(-1)
         dyn_t = jnp.stack([rel[:, 0], rel[:, 1], jnp.full_like(obj, T.IN_ROOM),
                            jnp.full_like(obj, T.REV_IN_ROOM)], -1).reshape(-1)
-        dyn_ok = jnp.repeat(has, 4)
+        rel_ok = placement.active & has_furn
+        dyn_ok = jnp.stack([rel_ok, rel_ok, room_ok, room_ok], -1).reshape(-1)
 
         n_pad = self.max_edges - self.num_static_edges - 4 * self.num_objects
         zeros = jnp.zeros((n_pad,), jnp.int32)
@@ -186,11 +208,14 @@ class GraphBuilder:
         senders = jnp.where(live, senders, 0)
         receivers = jnp.where(live, receivers, 0)
         etype = jnp.where(live, etype, 0)
+        # Zero every feature of rows that are not live (see the module docstring: no leaks).
+        m3 = mask[:, None]
         return jraph.GraphsTuple(
-            nodes={'category': self.category, 'node_type': self.node_type, 'pos': pos,
-                   'size': self.static_half, 'mask': mask},
+            nodes={'category': jnp.where(mask, self.category, 0),
+                   'node_type': jnp.where(mask, self.node_type, 0),
+                   'pos': jnp.where(m3, pos, 0.0), 'size': jnp.where(m3, self.static_half, 0.0),
+                   'mask': mask},
             edges={'edge_type': etype, 'mask': live},
             senders=senders, receivers=receivers,
             n_node=jnp.array([self.max_nodes], jnp.int32), n_edge=jnp.array([self.max_edges], jnp.int32),
             globals=None)
-

@@ -2,17 +2,36 @@
 
 Role: like SemExp, project the semantically segmented point cloud of each depth frame onto a 2D
 grid of `cell` x `cell` metres (0.23 m in the paper) over the scene's bounds; when two points fall
-into one cell the higher one wins, and the map accumulates over the episode. The policy sees an
-egocentric crop (agent at the centre, heading up the rows), so, like the scene graph's node
-positions, the map is in the agent's frame.
+into one cell the higher one wins, and the map accumulates over the episode (a cell never gets
+lower). Pure JAX, jittable and vmappable:
 
+    mm = MetricMap(scene, camera_config, MapConfig())   # the Camera's config: same rays
+    key = mm.reset()                                     # i32[Hg, Wg]
+    key = mm.update(key, pose, frame.depth, frame.semantic)
+    obs = mm.observe(key, pose)                          # f32[M, M, 3] (egocentric) or f32[Hg, Wg, 5]
+
+Grid: cell (i, j) covers world x in origin_x + [i, i + 1) * cell, y in origin_y + [j, j + 1) * cell,
+origin = the scene's lower bounds corner; Hg x Wg = `shape` covers the bounds. Points outside fall
+off the map.
 State: `key` i32[Hg, Wg], -1 for never observed, else `height_mm * NUM_CLASSES + class` so that a
 single scatter-max keeps the highest point and its class (deterministic on ties: higher class).
-Observation: f32[M, M, 3] = (observed, height / max_height, class id) with M = `crop`; the model
-embeds the class channel (hron_jax.models).
-Pre-mapping: the map starts as the static scene seen from above (every cell's highest static
-surface, cast once on the host with MuJoCo's `mj_ray`, the pool objects parked below the floor),
-so it holds rooms, walls and furniture but never the target.
+Heights are clipped to [0, max_height] and stored in millimetres.
+Observation (`observe`), channels (observed 0/1, height / max_height, class id as a float):
+    egocentric (default): f32[M, M, 3], M = `crop`, agent at the centre, heading up the rows: row 0
+        is farthest ahead, column 0 farthest left (nearest-cell resampling of the global grid), so
+        the map is in the agent's frame like the scene graph's node positions;
+    global (`egocentric=False`): f32[Hg, Wg, 5], the whole grid in world axes (rows +x, columns
+        +y) plus the agent's heading (cos yaw, sin yaw) in channels 3-4 at the agent's cell and 0
+        elsewhere (a unit vector marks where the agent is and where it faces).
+The class id channel is the raw semantic class (vocabulary.class_id); the model's map branch reads
+the channels as an image (a copy of the RGB-D branch, as in the paper).
+Pre-mapping (`premap=True`): the map starts as the static scene seen from above: for every cell,
+the highest top of any static geom (rooms, walls, furniture; never a pool object, so never the
+target) whose footprint overlaps the cell, with that geom's class. It is computed once on the
+host from the geoms' world AABBs, which is exact for the axis-aligned boxes that make up the
+shipped scenes (a rotated box, sphere or capsule is counted over its AABB footprint). Sampling one
+ray per cell centre instead would miss the 0.1 m walls and every geom thinner than a cell, which
+the camera's point cloud does put into the map.
 """
 
 from __future__ import annotations
@@ -22,12 +41,11 @@ import math
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from .scenes import vocabulary as V
 from .scenes.loader import Scene
-from .sensors import CameraConfig, world_rays
+from .sensors import CameraConfig, effective_rgba, world_rays
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,7 +53,8 @@ class MapConfig:
     cell: float = 0.23        # m, the paper's resolution
     crop: int = 32            # M: egocentric crop side in cells (32 * 0.23 = 7.4 m)
     max_height: float = 2.5   # m; heights are clipped to [0, max_height]
-    premap: bool = False
+    premap: bool = False      # start from the static scene seen from above
+    egocentric: bool = True   # observe an egocentric crop; False: the global map + agent heading
 
 
 _NC = V.NUM_CLASSES
@@ -53,21 +72,25 @@ class MetricMap:
         self.premap_key = jnp.asarray(self._static_topdown(scene)) if config.premap else None
 
     def _static_topdown(self, scene: Scene) -> np.ndarray:
-        """Highest static surface per cell as a key table, by casting rays down from above."""
-        m = scene.model
-        d = mujoco.MjData(m)
-        mujoco.mj_forward(m, d)
-        top = float(scene.bounds[1, 2]) + 1.0
+        """Key table of the highest static geom top over each cell (see the module docstring)."""
+        inst = scene.geom_instance
+        is_object = (inst >= 0) & (scene.node_type[np.maximum(inst, 0)] == V.OBJECT)
+        visible = effective_rgba(scene.model)[:, 3] != 0  # as the camera: alpha 0 is never seen
+        lo = scene.geom_aabb_center - scene.geom_aabb_half
+        hi = scene.geom_aabb_center + scene.geom_aabb_half
+        c = self.config.cell
+        # Cells whose open interior overlaps the footprint; the 1e-6 m shrink keeps a face lying on
+        # a cell boundary out of the neighbouring cell.
+        i0 = np.floor((lo[:, :2] + 1e-6 - self.origin) / c).astype(int)
+        i1 = np.ceil((hi[:, :2] - 1e-6 - self.origin) / c).astype(int)
+        i0 = np.clip(i0, 0, self.shape)
+        i1 = np.clip(i1, 0, self.shape)
+        z = np.clip(hi[:, 2], 0.0, self.config.max_height)
+        keys = np.round(z * _MM).astype(np.int64) * _NC + scene.geom_class
         key = np.full(self.shape, -1, np.int64)
-        geomid = np.zeros(1, np.int32)
-        for i in range(self.shape[0]):
-            for j in range(self.shape[1]):
-                x, y = self.origin + (np.array([i, j]) + 0.5) * self.config.cell
-                dist = mujoco.mj_ray(m, d, np.array([x, y, top]), np.array([0.0, 0.0, -1.0]), None, 1, -1, geomid)
-                if dist >= 0:
-                    cls = int(scene.geom_class[geomid[0]])
-                    z = np.clip(top - dist, 0.0, self.config.max_height)
-                    key[i, j] = int(round(z * _MM)) * _NC + cls
+        for g in np.nonzero(~is_object & visible & (hi[:, 2] >= -1e-6))[0]:
+            sub = key[i0[g, 0]:i1[g, 0], i0[g, 1]:i1[g, 1]]
+            np.maximum(sub, keys[g], out=sub)
         return key.astype(np.int32)
 
     def reset(self) -> jax.Array:
@@ -89,7 +112,9 @@ class MetricMap:
         return key.at[cell[..., 0].reshape(-1), cell[..., 1].reshape(-1)].max(k.reshape(-1))
 
     def observe(self, key: jax.Array, pose: jax.Array) -> jax.Array:
-        """Egocentric crop f32[M, M, 3]: row 0 is ahead of the agent, column 0 to its left."""
+        """The policy's view of the map (see the module docstring for shapes and channels)."""
+        if not self.config.egocentric:
+            return self._observe_global(key, pose)
         m, c = self.config.crop, self.config.cell
         ahead = (m / 2 - 0.5 - jnp.arange(m)) * c                       # rows: far ahead -> behind
         left = (m / 2 - 0.5 - jnp.arange(m)) * c                        # cols: left -> right
@@ -101,7 +126,17 @@ class MetricMap:
         inside = jnp.all((cell >= 0) & (cell < jnp.array(self.shape)), -1)
         k = jnp.where(inside, key[jnp.clip(cell[..., 0], 0, self.shape[0] - 1),
                                   jnp.clip(cell[..., 1], 0, self.shape[1] - 1)], -1)
+        return self._channels(k)
+
+    def _channels(self, k: jax.Array) -> jax.Array:
         seen = k >= 0
         height = jnp.where(seen, (k // _NC) / _MM / self.config.max_height, 0.0)
         cls = jnp.where(seen, k % _NC, 0)
         return jnp.stack([seen.astype(jnp.float32), height.astype(jnp.float32), cls.astype(jnp.float32)], -1)
+
+    def _observe_global(self, key: jax.Array, pose: jax.Array) -> jax.Array:
+        cell = jnp.floor((pose[:2] - self.origin) / self.config.cell).astype(jnp.int32)
+        at = ((jnp.arange(self.shape[0])[:, None] == cell[0])
+              & (jnp.arange(self.shape[1])[None, :] == cell[1]))[..., None]
+        heading = jnp.where(at, jnp.stack([jnp.cos(pose[2]), jnp.sin(pose[2])]), 0.0).astype(jnp.float32)
+        return jnp.concatenate([self._channels(key), heading], -1)
