@@ -1,0 +1,353 @@
+"""Simulator: one scene file + the agent -> one `mjx.Model`; batched, jittable physics steps.
+
+Role
+----
+Compiles an annotated scene (docs/scene_format.md) together with the navigating agent into a single
+MuJoCo model, and steps it with MJX. The API is functional (Brax / MuJoCo Playground style): a
+`Simulator` holds only static things (models, index tables, config) and its methods are pure
+functions of an `mjx.Data`, so they jit and vmap:
+
+    sim = Simulator.from_file("scenes/house.xml")            # or from_xml / from_spec
+    d = sim.init(pose, mocap_pos, mocap_quat)                  # pose f32[3] = (x, y, yaw)
+    d = sim.step(d, action)                                    # action i32[] in 0..4, 0.1 s of sim
+    xy_yaw = sim.agent_pose(d)                                 # f32[3], yaw wrapped to [-pi, pi)
+    batched: jax.vmap(sim.init)(poses[B,3], mpos[B,nmocap,3], mquat[B,nmocap,4]); jax.vmap(sim.step)
+
+Actions (the paper's discrete navigation actions, executed physically): FORWARD 0 (+0.2 m along the
+heading), BACKWARD 1 (-0.2 m), TURN_LEFT 2 (+30 deg yaw), TURN_RIGHT 3 (-30 deg), STOP 4 (zero
+velocity). One env step = `config.env_dt` = 0.1 s of simulated time (500 steps = 50 s) made of
+`config.substeps` MJX steps inside one `lax.scan`.
+
+The agent
+---------
+Body `agent` with slide joints `agent:x`, `agent:y` (world axes, they come first) and hinge
+`agent:yaw`, so qpos[agent] = (x, y, yaw). Its collision shape is one vertical capsule of radius 0.2 m
+from `bottom_clearance` (0.05 m, so floor seams and door thresholds never block it) to 1.2 m. The
+capsule is the only geom with contype=1; the geoms that should block it (walls, furniture: every geom
+that is not a room floor, not a mocap object, and reaches into the capsule's height range) get
+conaffinity=1, everything else contype=conaffinity=0. Static-static pairs never exist, so the
+candidate pairs are exactly agent x blockers. MJX evaluates every candidate pair every substep (its
+CPU cost scales with pairs), so the model carries the MJX numeric `max_geom_pairs` = K: per substep
+MJX keeps the K pairs of smallest bounding-sphere distance (lax.top_k). K is chosen at build time
+(`_auto_max_geom_pairs`) so that, for agent positions on a 5 cm grid over the whole scene, every
+blocker whose AABB could touch the capsule ranks within the top K: culling never drops a live contact.
+
+Control scheme: deadbeat velocity plan on implicit velocity servos
+------------------------------------------------------------------
+Each of x, y, yaw has a `velocity` actuator (force = kv (ctrl - qvel)) and the integrator is
+`implicitfast`, which treats kv implicitly: per substep v' = (v + a ctrl) / (1 + a) with
+a = dt kv / m exactly (m the dof's mass or inertia). An action becomes a displacement delta (world
+dx, dy from the heading at the start of the step, or dyaw) and a planned velocity sequence
+u_0 = 0, u_1..u_{N-1} = delta * trapezoid / (dt * sum), u_N = 0 (sum_n dt u_n = delta). The controls
+c_n = ((1 + a) u_{n+1} - u_n) / a make v follow the plan exactly in free space, so the agent moves
+0.2 m / turns 30 deg to float precision and ends the step at rest, independent of mass and gains.
+Why this and not a position servo: a position servo must be stiff to settle 0.2 m within 0.1 s
+(omega ~ 80 /s), and when a wall blocks it that stiffness times the remaining distance pushes the
+capsule into the (soft) contact; here the push against a wall is only kv * (planned velocity), and
+a small a (0.5) keeps it low, while the trapezoid caps travel per substep (2.9 cm) below the contact
+margin (2 cm) plus a few mm, so contacts are detected before the capsule penetrates (no tunnelling:
+walls are far thicker than one substep's travel). Contacts are frictionless (condim 1), so turning
+in contact is not resisted and the agent slides along walls it meets obliquely. When blocked, the
+controller's last deceleration substep pulls back a few mm and the contact spring pushes the capsule
+out to the margin, so the agent rests 0-3 cm from the wall surface, never inside it. Finally a brake
+zeroes the agent's qvel after the last substep (STOP and blocked motions included), so no velocity
+ever carries into the next step: each action is a self-contained motion primitive, as in the paper.
+
+Shapes: pose f32[3]; mocap_pos f32[nmocap, 3]; mocap_quat f32[nmocap, 4] (w, x, y, z); action i32[].
+After `step`, `d.qpos`/`d.qvel` are final; `d.geom_xpos`/`geom_xmat` are those of the last substep's
+forward pass (static and mocap geoms are exact; only the agent's own geoms lag one substep, and the
+sensors exclude them). Mocap poses are constant within an episode, so sensors may use d.geom_xpos.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+FORWARD, BACKWARD, TURN_LEFT, TURN_RIGHT, STOP = 0, 1, 2, 3, 4
+NUM_ACTIONS = 5
+ACTION_NAMES = ("forward", "backward", "turn_left", "turn_right", "stop")
+
+AGENT_BODY = "agent"
+AGENT_GEOM = "agent:capsule"
+AGENT_JOINTS = ("agent:x", "agent:y", "agent:yaw")
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Static simulator settings (hashable; changing one recompiles)."""
+
+    radius: float = 0.2             # capsule radius (m)
+    height: float = 1.2             # capsule top above the floor (m)
+    bottom_clearance: float = 0.05  # capsule bottom above the floor (m): thresholds / seams don't block
+    mass: float = 20.0              # kg; the yaw inertia is that of a solid cylinder, m r^2 / 2
+    env_dt: float = 0.1             # simulated seconds per env step (paper: 500 steps = 50 s)
+    substeps: int = 10              # MJX steps per env step (timestep = env_dt / substeps)
+    forward_m: float = 0.2          # FORWARD / BACKWARD displacement (m)
+    turn_deg: float = 30.0          # TURN_LEFT / TURN_RIGHT rotation (deg)
+    ramp_substeps: int = 3          # trapezoid velocity plan: substeps to reach cruise speed
+    servo_gain: float = 0.5         # a = dt kv / m of the implicit velocity servos (see docstring)
+    contact_margin: float = 0.02    # contacts activate this far before touching (m)
+    contact_solref: tuple = (0.02, 1.0)                    # timeconst >= 2 dt (MuJoCo's refsafe)
+    contact_solimp: tuple = (0.95, 0.99, 0.001, 0.5, 2.0)  # stiff: little give under the servo push
+    max_geom_pairs: Optional[int] = None  # None: smallest K that never drops a live contact
+    solver_iterations: int = 4      # Newton iterations (few frictionless contacts on 3 dofs)
+    ls_iterations: int = 8
+    agent_rgba: tuple = (0.2, 0.4, 0.9, 1.0)
+
+
+def velocity_plan(config: SimConfig) -> np.ndarray:
+    """Planned velocity per unit displacement, u[0..N] (u_0 = u_N = 0, dt * sum(u) = 1)."""
+    n = config.substeps
+    dt = config.env_dt / n
+    k = np.arange(n - 1)
+    w = np.minimum(np.minimum(k + 1, n - 1 - k), config.ramp_substeps).astype(np.float64)
+    u = np.concatenate([[0.0], w / (w.sum() * dt), [0.0]])
+    return u
+
+
+def control_profile(config: SimConfig) -> np.ndarray:
+    """Per-substep velocity-servo command per unit displacement, c[0..N-1] (deadbeat on the plan)."""
+    u = velocity_plan(config)
+    a = config.servo_gain
+    return ((1.0 + a) * u[1:] - u[:-1]) / a
+
+
+def _add_agent(spec: mujoco.MjSpec, cfg: SimConfig) -> None:
+    """Inject the agent body, its joints, capsule and velocity actuators into `spec`."""
+    dt = cfg.env_dt / cfg.substeps
+    body = spec.worldbody.add_body(name=AGENT_BODY)
+    for name, jtype, axis in (
+        (AGENT_JOINTS[0], mujoco.mjtJoint.mjJNT_SLIDE, [1.0, 0.0, 0.0]),
+        (AGENT_JOINTS[1], mujoco.mjtJoint.mjJNT_SLIDE, [0.0, 1.0, 0.0]),
+        (AGENT_JOINTS[2], mujoco.mjtJoint.mjJNT_HINGE, [0.0, 0.0, 1.0]),
+    ):
+        body.add_joint(name=name, type=jtype, axis=axis)
+    # Explicit inertia with the COM on the joint axes: the mass matrix is diag(m, m, Izz), which is
+    # what the servo gains below assume.
+    izz = 0.5 * cfg.mass * cfg.radius**2
+    body.explicitinertial = True
+    body.mass = cfg.mass
+    body.inertia = [izz, izz, izz]
+    z0 = cfg.bottom_clearance + cfg.radius
+    z1 = cfg.height - cfg.radius
+    geom = body.add_geom(name=AGENT_GEOM, type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                         size=[cfg.radius, 0.0, 0.0], fromto=[0.0, 0.0, z0, 0.0, 0.0, z1])
+    geom.rgba = list(cfg.agent_rgba)
+    geom.contype, geom.conaffinity = 1, 0
+    geom.condim = 1                    # frictionless: turning in contact is free, walls are slid along
+    geom.priority = 10                 # the agent's contact parameters win over the scene's
+    geom.margin = cfg.contact_margin
+    geom.solref = list(cfg.contact_solref)
+    geom.solimp = list(cfg.contact_solimp)
+    for jname, inertia in zip(AGENT_JOINTS, (cfg.mass, cfg.mass, izz)):
+        act = spec.add_actuator(name=jname, target=jname, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_velocity(kv=cfg.servo_gain * inertia / dt)
+    spec.option.timestep = dt
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.iterations = cfg.solver_iterations
+    spec.option.ls_iterations = cfg.ls_iterations
+    # placeholder, set after compile once the blocker set is known
+    spec.add_numeric(name="max_geom_pairs", data=[-1.0])
+
+
+def _geom_world_aabb(m: mujoco.MjModel, d: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+    """World AABB (center, half extents) of every geom (box, sphere, capsule), from d's kinematics."""
+    half = np.zeros((m.ngeom, 3))
+    for g in range(m.ngeom):
+        rot = d.geom_xmat[g].reshape(3, 3)
+        s = m.geom_size[g]
+        t = m.geom_type[g]
+        if t == mujoco.mjtGeom.mjGEOM_BOX:
+            half[g] = np.abs(rot) @ s
+        elif t == mujoco.mjtGeom.mjGEOM_SPHERE:
+            half[g] = s[0]
+        elif t == mujoco.mjtGeom.mjGEOM_CAPSULE:
+            half[g] = np.abs(rot[:, 2]) * s[1] + s[0]
+        else:  # other types: bounding sphere
+            half[g] = m.geom_rbound[g]
+    return d.geom_xpos.copy(), half
+
+
+def _auto_max_geom_pairs(m, d, agent_geom, blockers, cfg: SimConfig, grid: float = 0.05) -> int:
+    """Smallest K for MJX's bounding-sphere top-K broadphase that keeps every possible contact.
+
+    For agent positions on a grid covering the blockers' extent, a blocker can be in contact only if
+    its AABB overlaps the capsule's AABB grown by the margin; MJX ranks pairs by
+    |c_agent - c_geom| - rbound_agent - rbound_geom. K = 1 + the worst rank of a possibly-touching
+    blocker over all positions (ties counted against us).
+    """
+    if len(blockers) == 0:
+        return 0
+    c, h = _geom_world_aabb(m, d)
+    cb, hb = c[blockers], h[blockers]
+    lo = (cb - hb)[:, :2].min(0) - cfg.radius
+    hi = (cb + hb)[:, :2].max(0) + cfg.radius
+    xs = np.arange(lo[0], hi[0] + grid, grid)
+    ys = np.arange(lo[1], hi[1] + grid, grid)
+    zc = 0.5 * (cfg.bottom_clearance + cfg.height)
+    zh = 0.5 * (cfg.height - cfg.bottom_clearance) + cfg.contact_margin
+    rb = m.geom_rbound[blockers]
+    rb_agent = m.geom_rbound[agent_geom]
+    reach = cfg.radius + cfg.contact_margin
+    z_overlap = np.abs(cb[:, 2] - zc) <= hb[:, 2] + zh
+    worst = 0
+    for x in xs:  # one row of the grid at a time keeps memory at len(ys) x len(blockers)
+        p = np.stack([np.full_like(ys, x), ys, np.full_like(ys, zc)], -1)  # (Y, 3)
+        metric = np.linalg.norm(p[:, None] - cb[None], axis=-1) - rb[None] - rb_agent  # (Y, B)
+        touch = (np.abs(p[:, None, 0] - cb[None, :, 0]) <= hb[None, :, 0] + reach) & \
+                (np.abs(p[:, None, 1] - cb[None, :, 1]) <= hb[None, :, 1] + reach) & z_overlap[None]
+        if not touch.any():
+            continue
+        # rank of a touching blocker = number of blockers with metric <= its metric (itself included)
+        worst_metric = np.where(touch, metric, -np.inf).max(1)  # (Y,)
+        rank = (metric <= worst_metric[:, None]).sum(1)
+        worst = max(worst, int(rank[touch.any(1)].max()))
+    return worst
+
+
+class Simulator:
+    """Static container for one compiled scene + agent; all methods are pure and jittable.
+
+    Attributes: `mj_model` (mujoco.MjModel incl. agent), `mjx_model`, `config`, `scene_ngeom` (the
+    scene file's geoms are geoms [0, scene_ngeom), the agent's come after), `agent_geoms` (np int),
+    `agent_body`, `blockers` (np int: geoms that collide with the agent), `max_geom_pairs`,
+    `nmocap`, `default_mocap_pos` / `default_mocap_quat` (the file's mocap poses).
+    """
+
+    def __init__(self, spec: mujoco.MjSpec, config: SimConfig = SimConfig()):
+        cfg = config
+        if cfg.substeps < 3:
+            raise ValueError("substeps must be >= 3 for the velocity plan")
+        scene_model = spec.compile()
+        self.scene_ngeom = scene_model.ngeom
+        _add_agent(spec, cfg)
+        m = spec.compile()
+        if not np.array_equal(m.geom_type[: self.scene_ngeom], scene_model.geom_type):
+            raise RuntimeError("adding the agent reordered the scene's geoms")
+        if m.nmat < 1:  # mjx.ray needs at least one material; add one rather than fail
+            spec.add_material(name="hron_default")
+            m = spec.compile()
+        d = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, d)
+
+        self.config = cfg
+        self.agent_body = m.body(AGENT_BODY).id
+        self.agent_geoms = np.nonzero(m.geom_bodyid == self.agent_body)[0]
+        agent_geom = m.geom(AGENT_GEOM).id
+        self.qpos_adr = np.array([m.jnt_qposadr[m.joint(j).id] for j in AGENT_JOINTS])
+        self.dof_adr = np.array([m.jnt_dofadr[m.joint(j).id] for j in AGENT_JOINTS])
+
+        # --- contact filter: agent capsule (contype 1) x blockers (conaffinity 1), nothing else ---
+        body_names = [m.body(b).name for b in range(m.nbody)]
+        root = m.body_rootid
+        is_floor = np.array([body_names[root[m.geom_bodyid[g]]].startswith("room:")
+                             for g in range(m.ngeom)])
+        is_mocap = m.body_mocapid[root[m.geom_bodyid]] >= 0
+        c, h = _geom_world_aabb(m, d)
+        reaches = (c[:, 2] + h[:, 2] > cfg.bottom_clearance) & (c[:, 2] - h[:, 2] < cfg.height)
+        is_scene = np.arange(m.ngeom) < self.scene_ngeom
+        block = is_scene & ~is_floor & ~is_mocap & reaches
+        m.geom_contype[:] = 0
+        m.geom_conaffinity[:] = np.where(block, 1, 0)
+        m.geom_contype[agent_geom] = 1
+        m.geom_conaffinity[agent_geom] = 0
+        self.blockers = np.nonzero(block)[0]
+
+        k = cfg.max_geom_pairs
+        if k is None:
+            k = _auto_max_geom_pairs(m, d, agent_geom, self.blockers, cfg)
+        k = int(max(1, min(k, max(len(self.blockers), 1))))
+        m.numeric_data[m.numeric("max_geom_pairs").adr[0]] = float(k)
+        self.max_geom_pairs = k
+
+        self.mj_model = m
+        self.mjx_model = mjx.put_model(m)
+        self.nmocap = m.nmocap
+        self.default_mocap_pos = np.array(m.body_pos[m.body_mocapid >= 0][np.argsort(
+            m.body_mocapid[m.body_mocapid >= 0])]) if m.nmocap else np.zeros((0, 3))
+        self.default_mocap_quat = np.array(m.body_quat[m.body_mocapid >= 0][np.argsort(
+            m.body_mocapid[m.body_mocapid >= 0])]) if m.nmocap else np.zeros((0, 4))
+        self._template = mjx.put_data(m, mujoco.MjData(m))
+        self._ctrl_profile = jnp.asarray(control_profile(cfg), jnp.float32)
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, config: SimConfig = SimConfig()) -> "Simulator":
+        return cls(mujoco.MjSpec.from_file(os.fspath(path)), config)
+
+    @classmethod
+    def from_xml(cls, xml: str, config: SimConfig = SimConfig()) -> "Simulator":
+        return cls(mujoco.MjSpec.from_string(xml), config)
+
+    # ------------------------------------------------------------------ functional API
+    def init(self, pose: jax.Array, mocap_pos: Optional[jax.Array] = None,
+             mocap_quat: Optional[jax.Array] = None) -> mjx.Data:
+        """Fresh data with the agent at pose (x, y, yaw) at rest and the given mocap poses.
+
+        Runs kinematics so geom_xpos / geom_xmat (mocap objects included) are valid for sensing.
+        """
+        d = self._template
+        pose = jnp.asarray(pose, d.qpos.dtype)
+        qpos = d.qpos.at[self.qpos_adr].set(pose)
+        repl = dict(qpos=qpos)
+        if mocap_pos is not None:
+            repl["mocap_pos"] = jnp.asarray(mocap_pos, d.mocap_pos.dtype).reshape(d.mocap_pos.shape)
+        if mocap_quat is not None:
+            repl["mocap_quat"] = jnp.asarray(mocap_quat, d.mocap_quat.dtype).reshape(d.mocap_quat.shape)
+        d = d.replace(**repl)
+        return mjx.kinematics(self.mjx_model, d)
+
+    def action_delta(self, pose: jax.Array, action: jax.Array) -> jax.Array:
+        """World-frame (dx, dy, dyaw) that `action` asks for at `pose` (x, y, yaw)."""
+        cfg = self.config
+        yaw = pose[2]
+        fwd = jnp.stack([jnp.cos(yaw), jnp.sin(yaw)]) * cfg.forward_m
+        turn = math.radians(cfg.turn_deg)
+        table = jnp.stack([
+            jnp.concatenate([fwd, jnp.zeros(1)]),
+            jnp.concatenate([-fwd, jnp.zeros(1)]),
+            jnp.array([0.0, 0.0, turn]),
+            jnp.array([0.0, 0.0, -turn]),
+            jnp.zeros(3),
+        ])
+        return table[jnp.clip(action, 0, NUM_ACTIONS - 1)]
+
+    def step(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
+        """Execute one discrete action: `substeps` MJX steps (env_dt seconds), then brake."""
+        pose = data.qpos[self.qpos_adr]
+        delta = self.action_delta(pose, action).astype(data.ctrl.dtype)
+
+        def substep(d, c):
+            return mjx.step(self.mjx_model, d.replace(ctrl=delta * c)), None
+
+        data, _ = jax.lax.scan(substep, data, self._ctrl_profile.astype(data.ctrl.dtype))
+        # Brake: whatever contacts did, nothing carries into the next action.
+        return data.replace(qvel=data.qvel.at[self.dof_adr].set(0.0),
+                            ctrl=jnp.zeros_like(data.ctrl))
+
+    def agent_pose(self, data: mjx.Data) -> jax.Array:
+        """(x, y, yaw) with yaw wrapped to [-pi, pi)."""
+        p = data.qpos[self.qpos_adr]
+        yaw = jnp.mod(p[2] + jnp.pi, 2 * jnp.pi) - jnp.pi
+        return jnp.stack([p[0], p[1], yaw])
+
+    def agent_velocity(self, data: mjx.Data) -> jax.Array:
+        """(vx, vy, wz): zero after every `step` (the brake)."""
+        return data.qvel[self.dof_adr]
+
+    def geom_tables(self, geom_instance: np.ndarray, geom_class: np.ndarray):
+        """Extend the scene's (scene_ngeom,) instance / class tables to the full model (agent: -1, 0)."""
+        gi = np.full(self.mj_model.ngeom, -1, np.int32)
+        gc = np.zeros(self.mj_model.ngeom, np.int32)
+        gi[: self.scene_ngeom] = geom_instance
+        gc[: self.scene_ngeom] = geom_class
+        return gi, gc
