@@ -318,20 +318,26 @@ class Camera:
             k = min(kmax[t], len(ids))
             size = self.geom_size[ids_j]
             cc, rc = c_cam[ids_j], r_cam[ids_j]
-            score = self._column_scores(cc, rc, _bounding_box_size(t, size))  # (W, Gt)
-            # materialise once: left to fusion, XLA recomputes the scores in every consumer
-            score = jax.lax.optimization_barrier(score)
-            neg, cand = jax.lax.top_k(-score, k)                # (W, k) nearest-entry candidates
-            overflow = jnp.sum(jnp.isfinite(score), -1) > k
-            # E = largest kept t_enter. A max over all k values, not neg[:, -1]: XLA:CPU only maps
-            # top_k to its fast TopK call when the whole [0:k] slice is used, else it sorts all G.
-            kept_max = jnp.max(-neg, axis=-1)
-            bound = jnp.where(overflow, jnp.minimum(bound, kept_max), bound)
-            # one gather of everything the exact kernel needs per candidate
             p_loc = -jnp.einsum("gai,ga->gi", rc, cc)           # ray origin in the geom frame
             table = jnp.concatenate([rc.reshape(-1, 9), p_loc, size], -1)  # (Gt, 15)
-            tab = table[cand]                                   # (W, k, 15)
-            tab = jnp.where(jnp.isfinite(neg)[..., None], tab, 0.0)
+            if k < len(ids):
+                score = self._column_scores(cc, rc, _bounding_box_size(t, size))  # (W, Gt)
+                # materialise once: left to fusion, XLA recomputes the scores in every consumer
+                score = jax.lax.optimization_barrier(score)
+                neg, cand = jax.lax.top_k(-score, k)            # (W, k) nearest-entry candidates
+                overflow = jnp.sum(jnp.isfinite(score), -1) > k
+                # E = largest kept t_enter. A max over all k values, not neg[:, -1]: XLA:CPU maps
+                # top_k to its fast TopK call only when the whole [0:k] slice is used, else it
+                # sorts all G per column (measured 10x slower).
+                kept_max = jnp.max(-neg, axis=-1)
+                bound = jnp.where(overflow, jnp.minimum(bound, kept_max), bound)
+                valid = jnp.isfinite(neg)                       # (W, k) real candidates
+                tab = jnp.where(valid[..., None], table[cand], 0.0)  # one gather, (W, k, 15)
+                cand_g = ids_j[cand]
+            else:  # few geoms of this type: test them all in every column, no culling needed
+                valid = jnp.ones((1, len(ids)), bool)
+                tab = table[None]                               # (1, Gt, 15)
+                cand_g = jnp.broadcast_to(ids_j[None], (cfg.width, len(ids)))
             comp = [tab[None, :, :, i].swapaxes(0, 1) for i in range(15)]  # each (W, 1, k)
             # direction in the geom frame: d_i = r[0,i] X + r[1,i] Y + r[2,i] (camera dir (X, Y, 1))
             d = [comp[0 * 3 + i] * X + comp[2 * 3 + i] + comp[1 * 3 + i] * Y for i in range(3)]
@@ -343,11 +349,10 @@ class Camera:
                 tt = ray_sphere_soa(s[0], *p, *d)
             else:
                 tt = ray_capsule_soa(s[0], s[1], *p, *d)
-            tt = jnp.where(jnp.isfinite(neg)[:, None, :], tt, jnp.inf)  # (W, H, k)
-            tt = jax.lax.optimization_barrier(tt)
-            j = jnp.argmin(tt, axis=-1)                          # (W, H)
-            t_min = jnp.min(tt, axis=-1)
-            g_min = jnp.take_along_axis(ids_j[cand], j, axis=1)
+            tt = jnp.where(valid[:, None, :], tt, jnp.inf)       # (W, H, k)
+            tt = jnp.broadcast_to(tt, (cfg.width, cfg.height, tt.shape[-1]))
+            t_min, j = _min_argmin(tt)                           # (W, H)
+            g_min = jnp.take_along_axis(cand_g, j, axis=1)
             better = t_min < best_t
             best_t = jnp.where(better, t_min, best_t)
             best_g = jnp.where(better, g_min, best_g)
@@ -430,6 +435,22 @@ class Camera:
         _, rot = camera_frame(pose, cfg)
         return self._finish(t, g, o, rot, data.geom_xpos.astype(jnp.float32), xmat,
                             jnp.zeros((), jnp.int32))
+
+
+def _min_argmin(x: jax.Array):
+    """(min, argmin) over the last axis in one variadic reduction.
+
+    jnp.min + jnp.argmin are two reductions, and XLA fuses the (expensive) kernel producing x into
+    both, evaluating it twice."""
+    idx = jax.lax.broadcasted_iota(jnp.int32, x.shape, x.ndim - 1)
+
+    def pick(a, b):
+        (va, ia), (vb, ib) = a, b
+        take_b = (vb < va) | ((vb == va) & (ib < ia))
+        return jnp.where(take_b, vb, va), jnp.where(take_b, ib, ia)
+
+    return jax.lax.reduce((x, idx), (jnp.array(jnp.inf, x.dtype), jnp.array(0, jnp.int32)), pick,
+                          (x.ndim - 1,))
 
 
 def _bounding_box_size(gtype: int, size: jax.Array) -> jax.Array:
