@@ -4,9 +4,9 @@
         -> concat -> fusion (3 FC) -> policy head (3 FC) -> logits f32[num_actions]
                                    -> value head  (3 FC) -> value  f32[]
 
-Batching: `ActorCritic.__call__` accepts one observation or a batch. When obs['goal'] has a
-leading batch axis ([B, G]) the single-observation network is mapped over it with `nn.vmap`
-(parameters shared), giving logits f32[B, A] and value f32[B]. Parameters are identical in both
+Batching: `ActorCritic.__call__` accepts one observation or a batch. When obs['goal'] has
+leading batch axes ([B, G], or [T, B, G], ...) the single-observation network is mapped over them
+with `nn.vmap` (parameters shared), giving logits f32[B, A] and value f32[B] (or [T, B, A], [T, B]). Parameters are identical in both
 modes (both live under 'core'), so init on one observation and apply on a batch, or vice versa.
 
 Attention readout: HGT attention per layer/head/edge and the pooling weights are sown into the
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import flax.linen as nn
 
@@ -87,8 +88,9 @@ class ActorCritic(nn.Module):
     """Policy and value network. `apply(variables, obs) -> (logits, value)`.
 
     Fields: num_actions, num_classes (semantic class vocabulary size, NUM_CLASSES), config.
-    obs: one observation dict (logits f32[A], value f32[]) or a batch with a leading axis on
-    every leaf (logits f32[B, A], value f32[B]); batch is detected from obs['goal'].ndim == 2.
+    obs: one observation dict (logits f32[A], value f32[]) or a batch with the same leading axes
+    on every leaf (logits f32[*lead, A], value f32[*lead]); the leading axes are those of
+    obs['goal'] beyond its last (feature) axis.
     """
 
     num_actions: int
@@ -97,12 +99,17 @@ class ActorCritic(nn.Module):
 
     @nn.compact
     def __call__(self, obs):
-        core = _ActorCriticCore
-        if jnp.ndim(obs["goal"]) == 2:
-            core = nn.vmap(_ActorCriticCore, in_axes=0, out_axes=0,
-                           variable_axes={"params": None, "attention": 0, "intermediates": 0},
-                           split_rngs={"params": False})
-        return core(self.num_actions, self.num_classes, self.config, name="core")(obs)
+        lead = jnp.shape(obs["goal"])[:-1]
+        if not lead:
+            return _ActorCriticCore(self.num_actions, self.num_classes, self.config, name="core")(obs)
+        # Any number of leading batch axes ([B], [T, B], ...): flatten them into one, map the
+        # single-observation network over it (parameters shared), restore them on the outputs.
+        flat = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + jnp.shape(a)[len(lead):]), obs)
+        core = nn.vmap(_ActorCriticCore, in_axes=0, out_axes=0,
+                       variable_axes={"params": None, "attention": 0, "intermediates": 0},
+                       split_rngs={"params": False})
+        logits, value = core(self.num_actions, self.num_classes, self.config, name="core")(flat)
+        return logits.reshape(lead + logits.shape[1:]), value.reshape(lead)
 
 
 def make_model(name: str, num_actions: int, config: ModelConfig | None = None,

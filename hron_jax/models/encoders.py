@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from typing import Sequence
 
-import jax
 import jax.numpy as jnp
 import flax.linen as nn
 import numpy as np
