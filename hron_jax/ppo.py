@@ -8,7 +8,8 @@
     runner, metrics = jax.jit(jax.vmap(train))(rngs)         # several seeds in one program
 
 env: any hron_jax.envs.base.Env (one env, no batch axis); it is wrapped in AutoResetWrapper unless it
-    already is one, and vmapped over config.num_envs.
+    already is one or resets itself (an ``auto_reset`` attribute that is True, as the navigation envs,
+    which render once per step that way), and vmapped over config.num_envs.
 network: a flax module, ``network.apply(params, obs) -> (logits f32[B, A], value f32[B] or [B, 1])``
     on a batch of observations (every obs leaf with a leading [B] axis).
 
@@ -18,7 +19,8 @@ PPO objective + clipped value loss - entropy bonus, with global-norm gradient cl
 
 Termination vs truncation (as in Brax, but exact): an env step that truncates (time limit) is done,
 so the value of the next obs (already the reset obs) is not used; instead the rollout evaluates the
-value of the pre-reset final obs (AutoResetWrapper's info['final_obs']) and GAE bootstraps from it.
+value of the pre-reset final obs (``env.final_obs(state)``: AutoResetWrapper's info['final_obs'], or
+what a self-resetting env renders on demand) and GAE bootstraps from it.
 That extra forward pass sits in a lax.cond on "any env truncated", so it costs nothing in the steps
 where no env truncates (under vmap over seeds the cond becomes a select and always runs).
 
@@ -146,13 +148,14 @@ def _masked_episode_means(metrics: dict) -> dict:
 
 
 def make_ppo(config: PPOConfig, env, network) -> PPO:
-    if not isinstance(env, AutoResetWrapper):
+    if not (isinstance(env, AutoResetWrapper) or getattr(env, 'auto_reset', False)):
         env = AutoResetWrapper(env)
     num_opt_steps = config.num_updates * config.update_epochs * config.num_minibatches
     lr = (optax.linear_schedule(config.lr, 0.0, num_opt_steps) if config.anneal_lr else config.lr)
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
     v_reset = jax.vmap(env.reset)
     v_step = jax.vmap(env.step)
+    v_final_obs = jax.vmap(env.final_obs)
 
     def apply(params, obs):
         logits, value = network.apply(params, obs)
@@ -176,7 +179,7 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             truncation = nxt.info['truncation']
             final_value = jax.lax.cond(
                 jnp.any(truncation > 0),
-                lambda: apply(params, nxt.info['final_obs'])[1] * truncation,
+                lambda: apply(params, v_final_obs(nxt))[1] * truncation,
                 lambda: jnp.zeros_like(truncation))
             tr = Transition(obs=env_state.obs, action=action, log_prob=log_prob, value=value,
                             reward=nxt.reward, done=nxt.done, truncation=truncation,

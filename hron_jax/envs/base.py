@@ -25,8 +25,11 @@ learner vmaps them:
 Envs build their states with ``initial_state`` and ``next_state`` so the bookkeeping (step count,
 truncation, return, metrics) is identical across tasks. ``AutoResetWrapper`` turns an episodic env into
 an endless one for rollouts, and keeps the pre-reset observation in ``info['final_obs']`` so a learner
-can bootstrap the value of a truncated episode from its real last state. ``GymnaxWrapper`` adapts a
-plain gymnax-style env.
+can bootstrap the value of a truncated episode from its real last state (learners ask for it with
+``env.final_obs(state)``). An env may instead reset itself inside ``step`` (attribute
+``auto_reset = True`` and a ``final_obs(state)`` method, e.g. the navigation envs, which so render
+one frame per step and the pre-reset one only on demand); hron_jax.ppo then does not wrap it.
+``GymnaxWrapper`` adapts a plain gymnax-style env.
 """
 from __future__ import annotations
 
@@ -187,6 +190,11 @@ class AutoResetWrapper(Wrapper):
         info['rng'] = rng
         info['final_obs'] = stepped.obs
         return stepped.replace(obs=obs, inner=inner, info=info)
+
+    def final_obs(self, state):
+        """The pre-reset observation of the step that produced `state` (learners call this rather
+        than reading info, so envs that reset themselves can render it only when needed)."""
+        return state.info['final_obs']
 
 
 @struct.dataclass

@@ -1,0 +1,401 @@
+"""Episode sampling for the navigation tasks: goals, stable object poses, distractors, agent starts.
+
+Role
+----
+Everything the directed and exploratory tasks draw at reset, split into a host-side precomputation
+(`build_tables`, once per scene) and pure, jittable, vmappable samplers over the resulting
+`EpisodeTables` (`sample_exploratory`, `sample_directed`). No geodesic field is ever computed after
+construction: targets are only ever placed at a fixed set of candidate points whose fields are
+precomputed here, so resets and steps only look fields up.
+
+Candidate points and fields
+---------------------------
+A relation slot (docs/scene_format.md) is a box whose bottom face is the support surface and whose
+xy extent bounds the object's centre. Each slot gets `slot_grid`^2 candidate xy points: the centres
+of a slot_grid x slot_grid grid over the slot's xy extent shrunk by the largest half extent of any
+object category that fits the slot, so *every* fitting object may use *every* point of its slot
+(the object's footprint stays inside the slot's extent). An object of half extents h placed at a
+point p rests at z = support + h_z, i.e. exactly on the support surface and, since 2 h_z <= slot
+height for a fitting object, within the clearance of inside / under slots. Points are deduplicated
+across slots (slots stacked on one piece of furniture often share xy), and for each unique point
+`geodesic.target_fields` gives the distance field to its success region (free cells within
+`success_distance` of it), stored as `field_dtype` (float16 by default: at most ~1 cm of rounding
+below 16 m, half the memory of float32).
+
+Reachability: the "main" free space is what the agent can reach from the scene's `start:0` site
+(or, without one, from the most central free cell of the largest room). A candidate point is usable
+only when its success region is reachable from there, a slot only when it has a usable point for
+the object, a goal only when one of its slots is usable (so only satisfiable goals are sampled),
+and agents only start on main free cells.
+
+Samplers (one episode; jit / vmap them)
+---------------------------------------
+`sample_exploratory(key, tables, num_distractors, min_start_distance)` -> Episode: a uniformly
+random satisfiable goal (object, relation, furniture, room) of the scene's goal table, a uniform
+slot realising it and a uniform usable point of that slot, a random pool instance of the object;
+start in a uniformly random room on a uniformly random main free cell of it whose geodesic distance
+to the success region exceeds `min_start_distance`, uniform yaw.
+`sample_directed(key, tables, num_distractors)` -> Episode: a random "pair" (object category, one
+slot on each half of the mirror plane x = centre of the scene's bounds, furniture of the same
+category, different relations); both halves get an instance of the object, the goal (object,
+relation, furniture, no room) names one of them at random, the other is the wrong object. Fixed
+start at `start:0`.
+Distractors (num_distractors > 0): pool instances other than the target (and wrong object), the
+target's own category first, then random other categories, each in a random free slot (one object
+per slot, so objects never overlap) that fits it; an instance of the goal's category never goes
+into a slot that satisfies the goal tuple (same relation, furniture category and, when the goal has
+one, room category). Instances that find no slot stay parked (inactive).
+
+Episode fields (O = scene.num_objects pool entries in node order, pool entry j = node R + F + j):
+    placement   graph_builder.Placement (active bool[O], pos f32[O,3], furniture i32[O] node,
+                relation i32[O])
+    slot        i32[O] slot of each pool object, -1 when inactive
+    goal        i32[4] vocabulary indices (object, relation, furniture, room); room -1 (directed)
+    target      i32 pool entry of the target; target_xy f32[2]; target_field i32 row of `fields`
+    wrong       i32 pool entry of the directed task's wrong object (-1: none); wrong_xy f32[2]
+    pose        f32[3] agent start (x, y, yaw)
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hron_jax import geodesic as G
+from hron_jax.graph_builder import Placement
+from hron_jax.scenes import vocabulary as V
+from hron_jax.scenes.loader import Scene
+
+_NUM_OBJ = len(V.OBJECTS)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlacementConfig:
+    slot_grid: int = 2              # candidate points per slot = slot_grid ** 2
+    success_distance: float = 1.0   # m, xy radius of the success region
+    cell_size: float = 0.1          # occupancy grid (m)
+    agent_radius: float = 0.2       # inflation of the occupancy grid (the simulator's capsule)
+    agent_height: float = 1.2
+    field_dtype: str = 'float16'    # 'float16' | 'float32' (bfloat16 is too coarse: 12 cm at 16 m)
+    stencil: int = 32               # geodesic stencil (see hron_jax.geodesic)
+
+
+class Episode(NamedTuple):
+    placement: Placement
+    slot: jax.Array
+    goal: jax.Array
+    target: jax.Array
+    target_xy: jax.Array
+    target_field: jax.Array
+    wrong: jax.Array
+    wrong_xy: jax.Array
+    pose: jax.Array
+
+
+@jax.tree_util.register_static
+@dataclasses.dataclass(frozen=True, eq=False)
+class EpisodeTables:
+    """Static per-scene tables (numpy; they become constants under jit). See build_tables."""
+
+    grid: G.OccupancyGrid
+    point_xy: np.ndarray        # f32[P, 2] unique candidate target points
+    fields: np.ndarray          # f16/f32[P, H, W] geodesic distance to each point's success region
+    slot_point: np.ndarray      # i32[S, K] point index of each slot's candidates (0 where unused)
+    slot_point_ok: np.ndarray   # bool[S, K] candidate exists and its success region is reachable
+    slot_usable: np.ndarray     # bool[S, NUM_OBJ] the object fits the slot and it has a usable point
+    slot_support: np.ndarray    # f32[S] z of the support surface (slot bottom)
+    slot_furniture: np.ndarray  # i32[S] furniture node
+    slot_relation: np.ndarray   # i32[S]
+    slot_furn_cat: np.ndarray   # i32[S] furniture vocabulary index
+    slot_room_cat: np.ndarray   # i32[S] room vocabulary index of the furniture's room
+    goals: np.ndarray           # i32[Q, 4] the scene's goal table
+    goal_ok: np.ndarray         # bool[Q] satisfiable (some slot usable for the goal's object)
+    goal_slots: np.ndarray      # bool[Q, S] usable slots realising each goal
+    pairs: np.ndarray           # i32[P2, 3] directed pairs (object, left slot, right slot)
+    obj_cat: np.ndarray         # i32[O] object vocabulary index of each pool entry
+    obj_half: np.ndarray        # f32[O, 3] half extents of each pool entry
+    room_cell: np.ndarray       # i32[H*W] room of each reachable free cell, -1 elsewhere
+    num_rooms: int
+    start_pose: np.ndarray      # f32[3] start:0 (x, y, yaw), or the reference cell with yaw 0
+    reach: np.ndarray           # f32[H, W] geodesic distance from the reference point (diagnostics)
+
+    @property
+    def num_points(self) -> int:
+        return int(self.point_xy.shape[0])
+
+    @property
+    def fields_nbytes(self) -> int:
+        return int(self.fields.nbytes)
+
+
+def _slot_points(scene: Scene, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate xy (S, n*n, 2) per slot and whether any object fits the slot (S,)."""
+    half = V.OBJECT_HALF
+    frac = (2.0 * (np.arange(n) + 0.5) / n - 1.0) if n > 1 else np.zeros(1)
+    fu, fv = np.meshgrid(frac, frac, indexing='ij')
+    frac2 = np.stack([fu.ravel(), fv.ravel()], -1)                       # (K, 2)
+    pts, any_fit = [], []
+    for k in range(scene.num_slots):
+        fits = [o for o in range(_NUM_OBJ) if np.all(half[o] <= scene.slot_half[k] + 1e-9)]
+        any_fit.append(bool(fits))
+        hmax = half[fits, :2].max(0) if fits else np.zeros(2)
+        rng = np.maximum(scene.slot_half[k, :2] - hmax, 0.0)
+        pts.append(scene.slot_center[k, :2] + frac2 * rng)
+    return np.array(pts, np.float64).reshape(scene.num_slots, len(frac2), 2), np.array(any_fit)
+
+
+def _reference_cell(scene: Scene, grid: G.OccupancyGrid) -> tuple[np.ndarray, float]:
+    """Reference xy for the main free space and its yaw: start:0, or the largest room's most central
+    free cell."""
+    if len(scene.start_pos):
+        return np.asarray(scene.start_pos[0, :2], np.float64), float(scene.start_yaw[0])
+    free = np.asarray(grid.free)
+    centres = np.asarray(grid.centres())
+    rooms = scene.room_at(centres)
+    big = int(np.argmax(scene.room_area()))
+    fl = scene.room_floors[big][scene.room_floor_valid[big]]
+    mid = np.array([(fl[:, 0].min() + fl[:, 2].max()) / 2, (fl[:, 1].min() + fl[:, 3].max()) / 2])
+    ok = free & (rooms == big)
+    d = np.where(ok, np.linalg.norm(centres - mid, axis=-1), np.inf)
+    i, j = np.unravel_index(np.argmin(d), d.shape)
+    return centres[i, j].astype(np.float64), 0.0
+
+
+def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig()) -> EpisodeTables:
+    """Host-side precomputation for one scene (see the module docstring).
+
+    model: the compiled MuJoCo model the agent moves in (hron_jax.sim.Simulator.mj_model), whose
+    collision bits define the obstacles; its occupancy grid is built at `config.cell_size`.
+    """
+    if config.field_dtype not in ('float16', 'float32'):
+        raise ValueError(f"field_dtype must be 'float16' or 'float32', got {config.field_dtype!r}")
+    grid = G.occupancy_grid(model, config=G.GridConfig(
+        cell_size=config.cell_size, agent_radius=config.agent_radius,
+        agent_height=config.agent_height))
+    free = np.asarray(grid.free)
+    h, w = free.shape
+
+    # Main free space: reachable from the reference point.
+    ref_xy, ref_yaw = _reference_cell(scene, grid)
+    ref_rc = np.asarray(grid.world_to_cell(ref_xy))
+    if not (0 <= ref_rc[0] < h and 0 <= ref_rc[1] < w and free[ref_rc[0], ref_rc[1]]):
+        raise ValueError(f'{scene.path}: the reference start {ref_xy} is not on a free cell')
+    src = np.zeros((1, h, w), bool)
+    src[0, ref_rc[0], ref_rc[1]] = True
+    reach = np.asarray(G.grid_distance_fields(grid, src, stencil=config.stencil))[0]
+    main = np.isfinite(reach)
+
+    # Candidate points, deduplicated to the millimetre.
+    pts, any_fit = _slot_points(scene, config.slot_grid)
+    s, k = pts.shape[:2]
+    keys = np.round(pts.reshape(-1, 2) * 1000).astype(np.int64)
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    point_xy = (uniq / 1000.0).astype(np.float32)
+    fields = np.asarray(G.target_fields(grid, jnp.asarray(point_xy), config.success_distance,
+                                        stencil=config.stencil))
+    # A point is usable when some main free cell is in (or leads to) its success region.
+    point_ok = np.array([np.isfinite(f[main]).any() for f in fields]) if len(fields) else np.zeros(0, bool)
+    slot_point = inv.reshape(s, k).astype(np.int32)
+    slot_point_ok = point_ok[slot_point] & any_fit[:, None]
+
+    fits = np.all(V.OBJECT_HALF[None, :, :] <= scene.slot_half[:, None, :] + 1e-9, -1)  # (S, NO)
+    slot_usable = fits & slot_point_ok.any(1)[:, None]
+    furn = scene.slot_furniture.astype(np.int32)
+    slot_furn_cat = scene.vocab_index[furn].astype(np.int32)
+    slot_room_cat = scene.vocab_index[scene.instance_room[furn]].astype(np.int32)
+
+    goals = scene.goals.astype(np.int32).reshape(-1, 4)
+    goal_slots = scene.goal_slots.astype(bool) & slot_usable[:, goals[:, 0]].T if len(goals) else \
+        np.zeros((0, s), bool)
+    goal_ok = goal_slots.any(1)
+
+    off = scene.num_rooms + scene.num_furniture
+    obj_cat = scene.vocab_index[off:].astype(np.int32)
+    obj_half = V.OBJECT_HALF[obj_cat].astype(np.float32)
+    pool_count = np.bincount(obj_cat, minlength=_NUM_OBJ)
+
+    # Directed pairs: same furniture category on both halves of the mirror plane, different relations.
+    mid_x = 0.5 * (scene.bounds[0, 0] + scene.bounds[1, 0])
+    side = np.sign(scene.aabb_center[furn, 0] - mid_x)
+    pairs = []
+    for o in range(_NUM_OBJ):
+        if pool_count[o] < 2:
+            continue
+        for a in np.nonzero((side < 0) & slot_usable[:, o])[0]:
+            for b in np.nonzero((side > 0) & slot_usable[:, o])[0]:
+                if slot_furn_cat[a] == slot_furn_cat[b] and scene.slot_relation[a] != scene.slot_relation[b]:
+                    pairs.append((o, a, b))
+    pairs = np.array(pairs, np.int32).reshape(-1, 3)
+
+    centres = np.asarray(grid.centres()).reshape(-1, 2)
+    rooms = scene.room_at(centres)
+    room_cell = np.where(main.reshape(-1) & free.reshape(-1), rooms, -1).astype(np.int32)
+
+    dtype = np.float16 if config.field_dtype == 'float16' else np.float32
+    # Keep inf as inf in float16 (finite distances here are < 65504 m).
+    return EpisodeTables(
+        grid=grid, point_xy=point_xy, fields=fields.astype(dtype),
+        slot_point=slot_point, slot_point_ok=slot_point_ok, slot_usable=slot_usable,
+        slot_support=(scene.slot_center[:, 2] - scene.slot_half[:, 2]).astype(np.float32),
+        slot_furniture=furn, slot_relation=scene.slot_relation.astype(np.int32),
+        slot_furn_cat=slot_furn_cat, slot_room_cat=slot_room_cat,
+        goals=goals, goal_ok=goal_ok, goal_slots=goal_slots, pairs=pairs,
+        obj_cat=obj_cat, obj_half=obj_half, room_cell=room_cell, num_rooms=scene.num_rooms,
+        start_pose=np.array([ref_xy[0], ref_xy[1], ref_yaw], np.float32), reach=reach)
+
+
+# ------------------------------------------------------------------------------------------------
+# Jittable samplers
+# ------------------------------------------------------------------------------------------------
+
+def _choice(key, mask):
+    """Uniform index among True entries of a bool vector (index 0 if none)."""
+    logits = jnp.where(mask, 0.0, -jnp.inf)
+    g = jax.random.gumbel(key, mask.shape)
+    return jnp.argmax(jnp.where(mask, logits + g, -jnp.inf)).astype(jnp.int32)
+
+
+def field(tables: EpisodeTables, index) -> jax.Array:
+    """f32[H, W] geodesic field of candidate point `index` (a lookup, never a solve)."""
+    return jnp.asarray(tables.fields)[index].astype(jnp.float32)
+
+
+def _point_in_slot(key, t: EpisodeTables, slot):
+    """(xy f32[2], point index i32) uniform among the slot's usable candidate points."""
+    kk = _choice(key, jnp.asarray(t.slot_point_ok)[slot])
+    p = jnp.asarray(t.slot_point)[slot, kk]
+    return jnp.asarray(t.point_xy)[p], p
+
+
+def _object_pos(t: EpisodeTables, entry, slot, xy):
+    z = jnp.asarray(t.slot_support)[slot] + jnp.asarray(t.obj_half)[entry, 2]
+    return jnp.concatenate([xy, z[None]])
+
+
+def _satisfies(t: EpisodeTables, goal):
+    """bool[S]: slots where an object of the goal's category satisfies the goal tuple."""
+    room_ok = (goal[3] < 0) | (jnp.asarray(t.slot_room_cat) == goal[3])
+    return ((jnp.asarray(t.slot_relation) == goal[1]) & (jnp.asarray(t.slot_furn_cat) == goal[2])
+            & room_ok)
+
+
+def _place(t: EpisodeTables, pl: Placement, slots, entry, slot, xy):
+    pos = _object_pos(t, entry, slot, xy)
+    pl = Placement(active=pl.active.at[entry].set(True), pos=pl.pos.at[entry].set(pos),
+                   furniture=pl.furniture.at[entry].set(jnp.asarray(t.slot_furniture)[slot]),
+                   relation=pl.relation.at[entry].set(jnp.asarray(t.slot_relation)[slot]))
+    return pl, slots.at[entry].set(slot)
+
+
+def _distractors(key, t: EpisodeTables, pl: Placement, slots, used, goal, exclude, num: int):
+    """Place up to `num` distractors (see the module docstring); exclude bool[O] entries in use."""
+    if num <= 0:
+        return pl, slots
+    o_count = t.obj_cat.shape[0]
+    num = min(num, o_count)
+    k_order, k_place = jax.random.split(key)
+    cat = jnp.asarray(t.obj_cat)
+    # Same category as the goal object first (the relational confounders), then the rest, each
+    # group in random order.
+    prio = (cat != goal[0]).astype(jnp.float32) + 0.5 * jax.random.uniform(k_order, (o_count,))
+    prio = jnp.where(exclude, jnp.inf, prio)
+    order = jnp.argsort(prio)[:num]
+    valid = jnp.isfinite(prio[order])
+    bad_for_goal = _satisfies(t, goal)
+
+    def body(carry, x):
+        pl, slots, used = carry
+        entry, ok, key = x
+        k_slot, k_pt = jax.random.split(key)
+        c = cat[entry]
+        elig = jnp.asarray(t.slot_usable)[:, c] & ~used & ~((c == goal[0]) & bad_for_goal)
+        place = ok & elig.any()
+        slot = _choice(k_slot, elig)
+        xy, _ = _point_in_slot(k_pt, t, slot)
+        pl2, slots2 = _place(t, pl, slots, entry, slot, xy)
+        pl = jax.tree.map(lambda a, b: jnp.where(place, a, b), pl2, pl)
+        slots = jnp.where(place, slots2, slots)
+        used = used | (place & (jnp.arange(used.shape[0]) == slot))
+        return (pl, slots, used), None
+
+    keys = jax.random.split(k_place, num)
+    (pl, slots, _), _ = jax.lax.scan(body, (pl, slots, used), (order, valid, keys))
+    return pl, slots
+
+
+def _empty(t: EpisodeTables):
+    o = t.obj_cat.shape[0]
+    return Placement.empty(o), jnp.full((o,), -1, jnp.int32)
+
+
+def sample_exploratory(key, t: EpisodeTables, num_distractors: int = 0,
+                       min_start_distance: float = 1.0) -> Episode:
+    """One exploratory-task episode (module docstring). num_distractors is static."""
+    k_goal, k_slot, k_pt, k_inst, k_dis, k_room, k_cell, k_yaw = jax.random.split(key, 8)
+    q = _choice(k_goal, jnp.asarray(t.goal_ok))
+    goal = jnp.asarray(t.goals)[q]
+    o = goal[0]
+    slot = _choice(k_slot, jnp.asarray(t.goal_slots)[q])
+    xy, p = _point_in_slot(k_pt, t, slot)
+    target = _choice(k_inst, jnp.asarray(t.obj_cat) == o)
+    pl, slots = _empty(t)
+    pl, slots = _place(t, pl, slots, target, slot, xy)
+    used = jnp.arange(t.slot_point.shape[0]) == slot
+    exclude = jnp.arange(t.obj_cat.shape[0]) == target
+    pl, slots = _distractors(k_dis, t, pl, slots, used, goal, exclude, num_distractors)
+
+    # Start: a random room with a main free cell far enough from the success region, then a cell.
+    d = field(t, p).reshape(-1)
+    room_cell = jnp.asarray(t.room_cell)
+    far = (room_cell >= 0) & (d > min_start_distance) & jnp.isfinite(d)
+    has = jnp.zeros((t.num_rooms,), bool).at[jnp.where(far, room_cell, t.num_rooms)].set(
+        True, mode='drop')
+    room = _choice(k_room, has)
+    cell = _choice(k_cell, far & (room_cell == room))
+    w = t.grid.free.shape[1]
+    cxy = t.grid.cell_to_world(jnp.stack([cell // w, cell % w]))
+    yaw = jax.random.uniform(k_yaw, (), jnp.float32, -jnp.pi, jnp.pi)
+    pose = jnp.concatenate([cxy, yaw[None]]).astype(jnp.float32)
+    return Episode(placement=pl, slot=slots, goal=goal.astype(jnp.int32), target=target,
+                   target_xy=xy, target_field=p, wrong=jnp.int32(-1),
+                   wrong_xy=jnp.full((2,), jnp.inf, jnp.float32), pose=pose)
+
+
+def sample_directed(key, t: EpisodeTables, num_distractors: int = 0) -> Episode:
+    """One directed-task episode (module docstring). num_distractors is static."""
+    if t.pairs.shape[0] == 0:
+        raise ValueError('this scene has no directed pairs (same furniture category on both halves '
+                         'with different relations)')
+    k_pair, k_side, k_inst, k_pa, k_pb, k_dis = jax.random.split(key, 6)
+    pairs = jnp.asarray(t.pairs)
+    pr = pairs[jax.random.randint(k_pair, (), 0, pairs.shape[0])]
+    o, slot_a, slot_b = pr[0], pr[1], pr[2]
+    target_is_a = jax.random.bernoulli(k_side)
+    cat = jnp.asarray(t.obj_cat)
+    # Two distinct pool instances of the object, in random order.
+    same = cat == o
+    prio = jnp.where(same, jax.random.uniform(k_inst, same.shape), jnp.inf)
+    first, second = jnp.argsort(prio)[:2]
+    xy_a, p_a = _point_in_slot(k_pa, t, slot_a)
+    xy_b, p_b = _point_in_slot(k_pb, t, slot_b)
+    pl, slots = _empty(t)
+    pl, slots = _place(t, pl, slots, first, slot_a, xy_a)
+    pl, slots = _place(t, pl, slots, second, slot_b, xy_b)
+    target = jnp.where(target_is_a, first, second)
+    wrong = jnp.where(target_is_a, second, first)
+    t_slot = jnp.where(target_is_a, slot_a, slot_b)
+    goal = jnp.stack([o, jnp.asarray(t.slot_relation)[t_slot], jnp.asarray(t.slot_furn_cat)[t_slot],
+                      jnp.int32(-1)]).astype(jnp.int32)
+    s_idx = jnp.arange(t.slot_point.shape[0])
+    used = (s_idx == slot_a) | (s_idx == slot_b)
+    exclude = (jnp.arange(cat.shape[0]) == first) | (jnp.arange(cat.shape[0]) == second)
+    pl, slots = _distractors(k_dis, t, pl, slots, used, goal, exclude, num_distractors)
+    return Episode(placement=pl, slot=slots, goal=goal, target=target,
+                   target_xy=jnp.where(target_is_a, xy_a, xy_b),
+                   target_field=jnp.where(target_is_a, p_a, p_b), wrong=wrong,
+                   wrong_xy=jnp.where(target_is_a, xy_b, xy_a),
+                   pose=jnp.asarray(t.start_pose, jnp.float32))
