@@ -554,20 +554,26 @@ def _window(radius_cells: int) -> np.ndarray:
 
 
 def _visible_candidates(field, grid, xy, radius_cells, samples):
-    """Cells near xy: (centres f32[K, 2], field values f32[K], visible bool[K]). A cell is visible
-    when points sampled along the segment from xy to its centre lie in free cells (xy's own cell
-    may be blocked: the agent may touch an obstacle closer than the inflated radius)."""
+    """Cells near xy: (centres f32[K, 2], field values f32[K], visible bool[K]).
+
+    A cell is visible when points sampled along the segment from xy to its centre lie in free
+    (fine) cells. If xy itself is in a blocked cell (the agent touches an obstacle a little closer
+    than the inflated radius, or follows a grid inflated more than the real one) the segment may
+    start with blocked samples but, once free, must stay free: the agent may leave the margin but
+    not cross an obstacle (any blocked band is >= 2 radius thick, wider than the window)."""
     xy = jnp.asarray(xy, jnp.float32)
     cand = grid.world_to_cell(xy) + jnp.asarray(_window(radius_cells))
     centres = grid.cell_to_world(cand)
     vals = _gather(field, cand, jnp.inf)
     los = grid.los_grid()
+    lfree = jnp.asarray(los.free)
     n = samples * grid.supersample
     t = (jnp.arange(1, n + 1, dtype=jnp.float32) / n)[None, :, None]
     pts = xy + t * (centres - xy)[:, None, :]
-    prc = los.world_to_cell(pts)
-    ok = _gather(jnp.asarray(los.free), prc, False) | jnp.all(prc == los.world_to_cell(xy), -1)
-    vis = jnp.all(ok, -1) & jnp.isfinite(vals)
+    ok = _gather(lfree, los.world_to_cell(pts), False)  # [K, n]
+    inside = ~_gather(lfree, los.world_to_cell(xy), False)
+    leaves_once = ~jnp.any(ok[:, :-1] & ~ok[:, 1:], -1) & ok[:, -1]
+    vis = jnp.where(inside, leaves_once, jnp.all(ok, -1)) & jnp.isfinite(vals)
     return centres, vals, vis
 
 
