@@ -8,9 +8,11 @@ Role
    Host-side numpy, done once per scene.
 2. `distance_field(free, sources, cell_size) -> f32[H, W]`: shortest-path distance (metres) from every
    free cell to the nearest source, pure JAX (jit, vmap), `lax.while_loop` of Gauss-Seidel sweeps until
-   nothing changes. `distance_fields` does a batch of source sets sharing the move masks.
+   nothing changes. `distance_fields` / `grid_distance_fields` do a batch of source sets sharing
+   the move masks.
 3. `geodesic_distance(field, grid, xy) -> f32`: continuous-space lookup, `descent_direction` /
-   `oracle_action`: shortest-path following for an oracle policy.
+   `oracle_action`: shortest-path following for an oracle policy. All take a single field
+   f32[H, W] or a bank f32[N, H, W] plus `index=` (cheap per-env lookups under vmap).
 4. `target_fields(grid, targets_xy, success_radius) -> f32[N, H, W]`: fields to the success regions
    (free space within `success_radius` of each target xy) of a batch of targets, one jitted call.
 
@@ -18,6 +20,8 @@ Grid convention
 ---------------
 `free[i, j]` is the cell whose centre is `origin + ((j + 0.5) h, (i + 0.5) h)`: row i <-> y, column
 j <-> x, h = cell size. Cells outside the grid do not exist (moves leaving the grid are forbidden).
+Only cell centres are path vertices, so a doorway is certain to be open on the grid only when it is
+wider than 2 radius + h (narrower than 2 radius it is always closed, as it is for the agent).
 Unreachable cells hold `UNREACHABLE` (= +inf); inf stays inf under + and min, so no sentinel
 arithmetic can leak a finite value. Callers that subtract potentials must guard against inf - inf.
 
@@ -39,9 +43,13 @@ Consequences:
   of wrap (measured 0.05-0.1 m at h = 0.1).
 Both ends are handled in continuous space: `success_init` seeds cells just outside the success disk
 with their straight-line distance to it, and `geodesic_distance` takes the min over visible nearby
-cells of field + straight-line distance. Measured against an exact visibility-graph solver on the
-25 m x 15 m demo house (h = 0.1, s = 3, stencil 48): +0.3 % to +0.75 % on 8 random 9-16 m paths
-(stencil 32: up to +1.1 %; coarse-only moves, s = 1: up to +2 %). So SPL's d0 errs high by < ~1 %.
+cells of field + straight-line distance (adds < 0.01 m in open space).
+Measured (h = 0.1, supersample 3, stencil 48) against exact shortest paths among the inflated
+shapes: demo house (25 m x 15 m, 1 m doors), 8 random 9-16 m paths: +0.3 % to +0.75 %; tests:
+around a sphere +0.8 % (4.2 m), three rotated boxes +0 to +1.8 % (2.3-3.6 m), a 180 deg wrap round
+a thin wall's end +2.7 % (3.9 m, +0.11 m), the worst case, being short and all corner. So SPL's d0
+errs high by < 1 % on house-scale paths and by up to ~0.1 m per 180 deg of tight wrap; halve the
+cell size to halve that (8x the solve time). Never low, except by < 0.02 m of rasterisation.
 
 Solver
 ------
@@ -52,6 +60,9 @@ order, so it propagates along an entire straight path segment at once, and any t
 directions share one of the four open half-planes. A round count of about (turns in the longest
 shortest path) / 2 + 1 results; every round relaxes every move, so Bellman-Ford's bound (rounds <=
 number of free cells) guarantees convergence.
+Timing (`python -m hron_jax.geodesic`, demo house 151 x 251 cells at 0.1 m, 100 targets, 2 busy
+CPU cores): 4 rounds, ~1.0 s per 100 fields (stencil 48; stencil 32 is oddly slower, ~2.3 s),
+compile ~1-2 s, rasterisation 0.03 s; at 0.05 m (302 x 502) ~8.4 s.
 """
 
 from __future__ import annotations
@@ -553,18 +564,30 @@ def _window(radius_cells: int) -> np.ndarray:
     return np.array(off, np.int32)
 
 
-def _visible_candidates(field, grid, xy, radius_cells, samples):
+def _lookup(field, rc, index):
+    """field[rc] (or field[index][rc] for a bank f32[N, H, W]) with inf outside the grid; indexing
+    the bank per cell avoids materialising field[index] ([B, H, W] under vmap) every step."""
+    field = jnp.asarray(field)
+    if index is None:
+        return _gather(field, rc, jnp.inf)
+    h, w = field.shape[-2:]
+    ok = (rc[..., 0] >= 0) & (rc[..., 0] < h) & (rc[..., 1] >= 0) & (rc[..., 1] < w)
+    return jnp.where(ok, field[index, jnp.clip(rc[..., 0], 0, h - 1),
+                               jnp.clip(rc[..., 1], 0, w - 1)], jnp.inf)
+
+
+def _visible_candidates(field, grid, xy, radius_cells, samples, index):
     """Cells near xy: (centres f32[K, 2], field values f32[K], visible bool[K]).
 
     A cell is visible when points sampled along the segment from xy to its centre lie in free
     (fine) cells. If xy itself is in a blocked cell (the agent touches an obstacle a little closer
     than the inflated radius, or follows a grid inflated more than the real one) the segment may
     start with blocked samples but, once free, must stay free: the agent may leave the margin but
-    not cross an obstacle (any blocked band is >= 2 radius thick, wider than the window)."""
+    not cross an obstacle (a blocked band is >= 2 radius thick; keep window * h below that)."""
     xy = jnp.asarray(xy, jnp.float32)
     cand = grid.world_to_cell(xy) + jnp.asarray(_window(radius_cells))
     centres = grid.cell_to_world(cand)
-    vals = _gather(field, cand, jnp.inf)
+    vals = _lookup(field, cand, index)
     los = grid.los_grid()
     lfree = jnp.asarray(los.free)
     n = samples * grid.supersample
@@ -577,23 +600,26 @@ def _visible_candidates(field, grid, xy, radius_cells, samples):
     return centres, vals, vis
 
 
-def geodesic_distance(field, grid: OccupancyGrid, xy, *, window: int = 2):
+def geodesic_distance(field, grid: OccupancyGrid, xy, *, index=None, window: int = 2):
     """f32 geodesic distance (metres) from a continuous xy to the field's sources: min over cells
-    within `window` cells that are visible from xy of field + straight-line distance. inf when no
-    such cell (outside the grid or enclosed). Jittable; vmap over xy (and field) for batches.
-    Inside the success region it returns the distance to a nearby 0 cell (< h), not exactly 0."""
-    centres, vals, vis = _visible_candidates(field, grid, xy, window, 4 * window + 4)
+    within `window` cells that are visible from xy of field + straight-line distance; inf when
+    none (outside the grid, enclosed). field: f32[H, W], or a bank f32[N, H, W] with int `index`
+    (e.g. target_fields output and the episode's target id). Jittable; vmap over xy / index.
+    Inside the success region it returns the distance to a nearby 0 cell (< h), not exactly 0;
+    the environment's own success test (xy within the radius) is the one to trust there."""
+    centres, vals, vis = _visible_candidates(field, grid, xy, window, 4 * window + 4, index)
     total = vals + jnp.linalg.norm(centres - jnp.asarray(xy, jnp.float32), axis=-1)
     return jnp.min(jnp.where(vis, total, jnp.inf))
 
 
-def descent_direction(field, grid: OccupancyGrid, xy, *, window: int = 3):
+def descent_direction(field, grid: OccupancyGrid, xy, *, index=None, window: int = 3):
     """(f32[2] unit world-frame direction, bool ok): towards the visible cell within `window` cells
     of xy with the lowest field value, a look-ahead point on the shortest path (nearest among ties,
     so in the success region it points at the closest 0 cell). Robust at cell boundaries since it
-    does not difference the field; ok is False when nothing visible is reachable."""
+    does not difference the field; ok is False when nothing visible is reachable.
+    field / index as in geodesic_distance."""
     xy = jnp.asarray(xy, jnp.float32)
-    centres, vals, vis = _visible_candidates(field, grid, xy, window, 4 * window + 4)
+    centres, vals, vis = _visible_candidates(field, grid, xy, window, 4 * window + 4, index)
     delta = centres - xy
     dist = jnp.linalg.norm(delta, axis=-1)
     score = jnp.where(vis, vals + 1e-3 * dist, jnp.inf)
@@ -603,14 +629,15 @@ def descent_direction(field, grid: OccupancyGrid, xy, *, window: int = 3):
     return direction, ok
 
 
-def oracle_action(field, grid: OccupancyGrid, xy, yaw, *, turn: float = math.pi / 6,
+def oracle_action(field, grid: OccupancyGrid, xy, yaw, *, index=None, turn: float = math.pi / 6,
                   window: int = 3):
     """int32 oracle action for forward / turn-by-`turn` dynamics: ORACLE_STOP in a source cell or
     when no direction exists, ORACLE_FORWARD when the heading (yaw, radians, CCW from +x) is within
     turn / 2 of descent_direction, else ORACLE_LEFT (CCW) / ORACLE_RIGHT towards it.
-    For a path with clearance, build the oracle's grid with a radius a little above the agent's."""
-    direction, ok = descent_direction(field, grid, xy, window=window)
-    here = _gather(field, grid.world_to_cell(xy), jnp.inf)
+    Give it fields on a grid inflated ~0.1 m more than the agent (GridConfig.agent_radius) so the
+    +-turn/2 heading error and 0.2 m steps keep clear of obstacles; field / index as above."""
+    direction, ok = descent_direction(field, grid, xy, index=index, window=window)
+    here = _lookup(field, grid.world_to_cell(xy), index)
     err = jnp.arctan2(direction[1], direction[0]) - yaw
     err = (err + jnp.pi) % (2 * jnp.pi) - jnp.pi
     act = jnp.where(jnp.abs(err) <= turn / 2 + 1e-4, ORACLE_FORWARD,
