@@ -533,13 +533,24 @@ def grid_distance_fields(grid: OccupancyGrid, sources, *, stencil: int = 48):
 def success_init(grid: OccupancyGrid, target_xy, success_radius: float = 1.0):
     """f32[H, W] initial distances for the success region of a target: 0 on free cells within
     success_radius of target_xy; cells just outside (up to min(1.5 h, agent radius) beyond) get
-    their straight-line distance to the disk, so the field does not round the region's edge to
-    cell centres; inf elsewhere. The band is narrower than any inflated obstacle (2 radius), so
-    its straight lines cannot cross one."""
-    r = jnp.linalg.norm(grid.centres() - jnp.asarray(target_xy, jnp.float32), axis=-1)
+    their straight-line distance to the disk when that short segment is free on the fine grid
+    (so the field does not round the region's edge to cell centres), inf elsewhere. The segment
+    check matters: next to a wall the disk point can lie inside the inflated wall, and the free
+    part of the disk be far away (e.g. a target just behind the wall of the next room)."""
+    c = grid.centres()
+    t = jnp.asarray(target_xy, jnp.float32)
+    r = jnp.linalg.norm(c - t, axis=-1)
     band = min(1.5 * grid.cell_size, grid.agent_radius)
+    near = (r > success_radius) & (r < success_radius + band)
+    # segment from the cell centre to the nearest disk point, sampled at <= half a fine cell
+    los = grid.los_grid()
+    n = int(math.ceil(2 * band / los.cell_size)) + 1
+    to_disk = (t - c) * ((r - success_radius) / jnp.maximum(r, 1e-6))[..., None]
+    clear = jnp.ones(r.shape, bool)
+    for k in range(1, n + 1):  # a loop, not a [H, W, n] batch: one grid of samples at a time
+        clear = clear & los.is_free(c + (k / n) * to_disk)
     init = jnp.where(r <= success_radius, 0.0,
-                     jnp.where(r < success_radius + band, r - success_radius, jnp.inf))
+                     jnp.where(near & clear, r - success_radius, jnp.inf))
     return jnp.where(jnp.asarray(grid.free), init, jnp.inf).astype(jnp.float32)
 
 
@@ -548,7 +559,8 @@ def target_fields(grid: OccupancyGrid, targets_xy, success_radius: float = 1.0, 
                   stencil: int = 48):
     """f32[N, H, W]: geodesic distance (metres) to the success region of each target xy f32[N, 2]
     (free space within success_radius), one vmapped solve sharing the move masks."""
-    init = jax.vmap(lambda t: success_init(grid, t, success_radius))(jnp.asarray(targets_xy))
+    # lax.map, not vmap: the inits' segment samples stay one grid at a time
+    init = jax.lax.map(lambda t: success_init(grid, t, success_radius), jnp.asarray(targets_xy))
     return grid_distance_fields(grid, init, stencil=stencil)
 
 

@@ -325,6 +325,19 @@ def test_target_fields_batch_and_vmap():
         assert v == pytest.approx(float(geo.geodesic_distance(batch[int(k)], grid, q)), rel=1e-6)
 
 
+def test_success_band_does_not_leak_through_a_wall():
+    # target 0.85 m above a wall across the floor (door far away at x in [2, 3]): the success disk
+    # pokes into the inflated wall but no free success cell lies below it. Cells just below the
+    # inflated wall are within 1 m + 1.5 h of the target, yet their only way in is via the door.
+    grid = _grid(_box(-3, -0.05, 2.0, 0.05))  # the doorway is x in [2, 3]
+    f = geo.target_fields(grid, jnp.array([[-1.0, 0.85]]), 1.0)[0]
+    below = float(geo.geodesic_distance(f, grid, (-1.0, -0.3)))
+    # to the door's inflated jamb (2.2, 0) 3.2 m, then >= |(2.2, 0) - target| - 1 = 2.3 m
+    assert below > 5.4, below  # (a leaked band cell would give ~0.1)
+    above = float(geo.geodesic_distance(f, grid, (-1.0, 2.0)))
+    assert above == pytest.approx(1.15 - 1.0, abs=0.01)  # straight to the disk
+
+
 def test_bool_sources_and_cell_units():
     free = np.ones((20, 30), bool)
     free[5:15, 10] = False
