@@ -84,7 +84,7 @@ class CameraConfig:
     forward_offset: float = 0.0  # camera origin ahead of the agent's axis (m)
     pitch_deg: float = 0.0       # + looks up
     backend: str = "kernel"      # "kernel" | "mjx"
-    k_box: int = 24              # per-column candidates kept per geom type (see module docstring)
+    k_box: int = 32              # per-column candidates kept per geom type (see module docstring)
     k_sphere: int = 8
     k_capsule: int = 8
     ambient: float = 0.35        # Lambert shading: ambient + (1 - ambient) * max(0, n . l)
