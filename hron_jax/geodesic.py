@@ -2,13 +2,13 @@
 
 Role
 ----
-1. `occupancy_grid(model, data, config) -> OccupancyGrid`: rasterise every obstacle geom of a compiled
-   MuJoCo scene into a bool[H, W] free-space grid, inflated by the agent radius with an exact Minkowski
-   test (a cell is blocked when its centre is closer than the radius to the geom's xy footprint).
-   Host-side numpy, done once per scene.
-2. `distance_field(free, sources, cell_size) -> f32[H, W]`: shortest-path distance (metres) from every
-   free cell to the nearest source, pure JAX (jit, vmap), `lax.while_loop` of Gauss-Seidel sweeps until
-   nothing changes. `distance_fields` / `grid_distance_fields` do a batch of source sets sharing
+1. `occupancy_grid(model, data, config) -> OccupancyGrid`: rasterise every obstacle geom of a
+   compiled MuJoCo scene into a bool[H, W] free-space grid, inflated by the agent radius with an
+   exact Minkowski test (a cell is blocked when its centre is closer than the radius to the geom's
+   xy footprint). Host-side numpy, done once per scene.
+2. `distance_field(free, sources, cell_size) -> f32[H, W]`: shortest-path distance (metres) from
+   every free cell to the nearest source, pure JAX (jit, vmap), `lax.while_loop` of Gauss-Seidel
+   sweeps until nothing changes. `distance_fields` / `grid_distance_fields` do a batch of source sets sharing
    the move masks.
 3. `geodesic_distance(field, grid, xy) -> f32`: continuous-space lookup, `descent_direction` /
    `oracle_action`: shortest-path following for an oracle policy. All take a single field
@@ -160,7 +160,8 @@ class OccupancyGrid:
         return tuple(self.free.shape)
 
     def world_to_cell(self, xy):
-        """f32[..., 2] world xy -> int32[..., 2] (row, col) of the containing cell (may be outside)."""
+        """f32[..., 2] world xy -> int32[..., 2] (row, col) of the containing cell (may be
+        outside the grid)."""
         xy = jnp.asarray(xy, jnp.float32)
         col = jnp.floor((xy[..., 0] - self.origin[0]) / self.cell_size)
         row = jnp.floor((xy[..., 1] - self.origin[1]) / self.cell_size)

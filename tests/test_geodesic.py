@@ -25,7 +25,8 @@ EPS = geo.stencil_error_bound(48)  # 0.75 %: worst open-space overestimate of th
 
 def _box(x0, y0, x1, y1, z0=0.0, z1=1.0, yaw_deg=0.0, extra=""):
     return (f'<geom type="box" size="{(x1 - x0) / 2} {(y1 - y0) / 2} {(z1 - z0) / 2}" '
-            f'pos="{(x0 + x1) / 2} {(y0 + y1) / 2} {(z0 + z1) / 2}" euler="0 0 {yaw_deg}" {extra}/>')
+            f'pos="{(x0 + x1) / 2} {(y0 + y1) / 2} {(z0 + z1) / 2}" '
+            f'euler="0 0 {yaw_deg}" {extra}/>')
 
 
 def _model(geoms="", bodies=""):
