@@ -8,8 +8,8 @@ Role
    xy footprint). Host-side numpy, done once per scene.
 2. `distance_field(free, sources, cell_size) -> f32[H, W]`: shortest-path distance (metres) from
    every free cell to the nearest source, pure JAX (jit, vmap), `lax.while_loop` of Gauss-Seidel
-   sweeps until nothing changes. `distance_fields` / `grid_distance_fields` do a batch of source sets sharing
-   the move masks.
+   sweeps until nothing changes. `distance_fields` / `grid_distance_fields` do a batch of source
+   sets sharing the move masks.
 3. `geodesic_distance(field, grid, xy) -> f32`: continuous-space lookup, `descent_direction` /
    `oracle_action`: shortest-path following for an oracle policy. All take a single field
    f32[H, W] or a bank f32[N, H, W] plus `index=` (cheap per-env lookups under vmap).
