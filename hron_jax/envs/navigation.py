@@ -345,21 +345,26 @@ def oracle_policy(env: NavigationEnv, state: EnvState, rng=None) -> jax.Array:
 
 
 def make_rollout(env, policy, num_steps: int):
-    """Pure `rollout(state, rng) -> (state, traj)` of `num_steps` steps of one env under
-    `policy(env, state, rng) -> action`; traj holds per-step action, reward, done, truncation,
-    metrics and the agent pose before the step (f32[T, 3]). jit / vmap it."""
-    def rollout(state, rng):
-        def body(carry, _):
+    """Pure `rollout(state, rng, actions=None) -> (state, traj)` of `num_steps` steps of one env
+    under `policy(env, state, rng) -> action`; `actions` (i32[num_steps], optional) overrides the
+    policy wherever it is >= 0 (scripted steps). traj holds per-step action, reward, done,
+    truncation, metrics, the agent pose before the step (pose f32[T, 3]) and after it (final_pose,
+    before any auto-reset), and the episode's d0. jit / vmap it."""
+    def rollout(state, rng, actions=None):
+        def body(carry, scripted):
             state, rng = carry
             rng, k = jax.random.split(rng)
             action = policy(env, state, k)
+            if scripted is not None:
+                action = jnp.where(scripted >= 0, scripted, action).astype(jnp.int32)
             pose = env.agent_pose(state)
             nxt = env.step(state, action)
             out = dict(action=action, reward=nxt.reward, done=nxt.done,
                        truncation=nxt.info['truncation'], metrics=nxt.metrics, pose=pose,
-                       final_pose=nxt.info['final'].pose)
+                       final_pose=nxt.info['final'].pose, d0=state.inner.d0)
             return (nxt, rng), out
-        (state, _), traj = jax.lax.scan(body, (state, rng), None, length=num_steps)
+        xs = None if actions is None else jnp.asarray(actions, jnp.int32)
+        (state, _), traj = jax.lax.scan(body, (state, rng), xs, length=num_steps)
         return state, traj
     return rollout
 

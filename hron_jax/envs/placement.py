@@ -18,8 +18,8 @@ object category that fits the slot, so *every* fitting object may use *every* po
 point p rests at z = support + h_z, i.e. exactly on the support surface and, since 2 h_z <= slot
 height for a fitting object, within the clearance of inside / under slots. Points are deduplicated
 across slots (slots stacked on one piece of furniture often share xy), and for each unique point
-`geodesic.target_fields` gives the distance field to its success region (free cells within
-`success_distance` of it), stored as `field_dtype` (float16 by default: at most ~1 cm of rounding
+`success_fields` (geodesic.target_fields, minus seeds that cannot reach the disk) gives the distance
+field to its success region (free cells within `success_distance` of it), stored as `field_dtype` (float16 by default: at most ~1 cm of rounding
 below 16 m, half the memory of float32).
 
 Reachability: the "main" free space is what the agent can reach from the scene's `start:0` site
@@ -58,7 +58,7 @@ Episode fields (O = scene.num_objects pool entries in node order, pool entry j =
 from __future__ import annotations
 
 import dataclasses
-import math
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -81,7 +81,7 @@ class PlacementConfig:
     agent_radius: float = 0.2       # inflation of the occupancy grid (the simulator's capsule)
     agent_height: float = 1.2
     field_dtype: str = 'float16'    # 'float16' | 'float32' (bfloat16 is too coarse: 12 cm at 16 m)
-    stencil: int = 32               # geodesic stencil (see hron_jax.geodesic)
+    stencil: int = 48               # geodesic stencil (see hron_jax.geodesic)
 
 
 class Episode(NamedTuple):
@@ -130,6 +130,36 @@ class EpisodeTables:
     @property
     def fields_nbytes(self) -> int:
         return int(self.fields.nbytes)
+
+
+def _reachable_init(grid: G.OccupancyGrid, target_xy, success_radius: float):
+    """geodesic.success_init without band cells whose straight line to the success disk is blocked.
+
+    success_init seeds free cells just outside the disk with their straight-line distance to it;
+    near a wall or furniture that line can end inside an (inflated) obstacle, e.g. behind the wall
+    of the room next to the target, which turns such cells into false minima of the field (an
+    oracle descending it gets stuck there, and d0 is underestimated). The segment is at most
+    1.5 cells long, so checking a few points on it against the fine grid is enough."""
+    base = G.success_init(grid, target_xy, success_radius)
+    c = grid.centres()
+    t = jnp.asarray(target_xy, jnp.float32)
+    d = jnp.linalg.norm(c - t, axis=-1, keepdims=True)
+    step = (t - c) / jnp.maximum(d, 1e-6) * jnp.maximum(d - success_radius, 0.0)
+    los = grid.los_grid()
+    ok = jnp.ones(base.shape, bool)
+    for s in (0.25, 0.5, 0.75, 1.0):
+        ok = ok & los.is_free(c + s * step)
+    return jnp.where((base > 0) & ~ok, jnp.inf, base)
+
+
+@partial(jax.jit, static_argnames=('success_radius', 'stencil'))
+def success_fields(grid: G.OccupancyGrid, targets_xy, success_radius: float = 1.0, *,
+                   stencil: int = 48):
+    """f32[N, H, W] geodesic distance (m) to the success disk of each target xy f32[N, 2]; as
+    geodesic.target_fields but with _reachable_init (the inits are built one target at a time to
+    keep memory at one grid of segment samples)."""
+    inits = jax.lax.map(lambda t: _reachable_init(grid, t, success_radius), jnp.asarray(targets_xy))
+    return G.grid_distance_fields(grid, inits, stencil=stencil)
 
 
 def _slot_points(scene: Scene, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -195,10 +225,10 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     keys = np.round(pts.reshape(-1, 2) * 1000).astype(np.int64)
     uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     point_xy = (uniq / 1000.0).astype(np.float32)
-    fields = np.asarray(G.target_fields(grid, jnp.asarray(point_xy), config.success_distance,
-                                        stencil=config.stencil))
-    # A point is usable when some main free cell is in (or leads to) its success region.
-    point_ok = np.array([np.isfinite(f[main]).any() for f in fields]) if len(fields) else np.zeros(0, bool)
+    fields = np.asarray(success_fields(grid, jnp.asarray(point_xy), config.success_distance,
+                                       stencil=config.stencil))
+    # A point is usable when a main free cell lies in its success disk (the agent can stand there).
+    point_ok = np.array([(f[main] == 0).any() for f in fields]) if len(fields) else np.zeros(0, bool)
     slot_point = inv.reshape(s, k).astype(np.int32)
     slot_point_ok = point_ok[slot_point] & any_fit[:, None]
 
