@@ -1,0 +1,385 @@
+"""Benchmarks: `python -m hron_jax.bench <subcommand>`.
+
+Role: one argparse entry point with a subcommand per stage of the pipeline; each prints a Markdown
+table and the machine it ran on. Subcommands register in `_SUBCOMMANDS` (name -> (add_args, run)).
+
+    env     simulator + camera throughput (this module): env steps/s of jitted, vmapped MJX physics
+            (`Simulator.step`, 0.1 s of sim = `substeps` MJX steps) and of the ray-cast camera per
+            backend, for each --num-envs; and the same work done by native MuJoCo in a Python loop
+            (mj_step substeps + mj_multiRay on the same rays, numpy lookups), with the ratio.
+    graph   scene-graph / metric-map update cost (delegates to hron_jax.bench_graph).
+
+`env` in detail. Poses are random collision-free positions of the scene (seeded), actions are
+uniform over the 5 actions. Per num_envs B:
+    physics     jit(vmap(sim.step)) on B envs
+    render/<b>  jit(vmap(camera.render)) on B envs, backend b in
+                kernel (column-culled analytic kernel, CameraConfig.k_box), kernel-nocull
+                (same kernel testing every geom: what culling buys), mjx (mjx.ray per pixel)
+    env/<b>     physics then render, the two jitted calls back to back (what an env step costs)
+    native      one MjData per env, a Python loop over envs: `substeps` x mj_step with the same
+                controls, brake, then mj_multiRay for the same H x W rays and numpy lookups for
+                depth / instance / class; native steps/s do not depend on B (one core).
+Times are wall-clock over --steps calls after one warm-up call (compile excluded; compile times are
+printed). Each timing is the best of --repeats runs, since the machine may be shared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import platform
+import time
+
+import numpy as np
+
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_DEFAULT_SCENE = os.path.join(_ROOT, "scenes", "house.xml")
+
+
+# ---------------------------------------------------------------------------------------------
+# machine description
+
+def machine_info() -> str:
+    import jax
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    dev = jax.devices()[0]
+    load = ""
+    if hasattr(os, "getloadavg"):
+        load = ", load avg %.1f %.1f %.1f" % os.getloadavg()
+    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return (f"CPU: {cpu}, {os.cpu_count()} logical cores ({affinity} usable){load}; "
+            f"jax {jax.__version__} on {dev.platform} ({dev.device_kind})")
+
+
+# ---------------------------------------------------------------------------------------------
+# synthetic scene (used when no scene file is given / for quick tests)
+
+def synthetic_house_xml(n_boxes: int = 300, seed: int = 0, rooms: int = 3) -> str:
+    """A house-like annotated scene of about `n_boxes` boxes: `rooms` x `rooms` rooms on a grid with
+    walls (door gaps) and random furniture made of boxes, plus a few mocap objects."""
+    rng = np.random.default_rng(seed)
+    size = 4.0
+    L = rooms * size
+    cats = ["kitchen", "living_room", "bedroom", "office", "bathroom", "dining_room", "corridor"]
+    out = ['<mujoco model="synthetic_house"><compiler angle="degree"/>',
+           '<asset><material name="plain" rgba="1 1 1 1"/></asset><worldbody>']
+    k_room = {}
+    for i in range(rooms):
+        for j in range(rooms):
+            c = cats[(i * rooms + j) % len(cats)]
+            k = k_room.setdefault(c, 0)
+            k_room[c] += 1
+            cx, cy = (i + 0.5) * size, (j + 0.5) * size
+            out.append(f'<body name="room:{c}:{k}"><geom type="box" pos="{cx} {cy} -0.025" '
+                       f'size="{size / 2} {size / 2} 0.025" rgba="0.7 0.6 0.5 1"/></body>')
+    nb = 0
+    for i in range(rooms + 1):      # grid lines x = i * size and y = i * size
+        for j in range(rooms):      # one room side per (line, cell); interior sides get a 1 m door
+            b0, b1 = j * size, (j + 1) * size
+            spans = [(b0, b1)] if i in (0, rooms) else [(b0, b0 + size / 2 - 0.5), (b0 + size / 2 + 0.5, b1)]
+            for lo, hi in spans:
+                mid, half = (lo + hi) / 2, (hi - lo) / 2 + 0.05
+                a = i * size
+                for pos, sz in ((f"{mid} {a} 1.25", f"{half} 0.05 1.25"), (f"{a} {mid} 1.25", f"0.05 {half} 1.25")):
+                    out.append(f'<geom type="box" pos="{pos}" size="{sz}" rgba="0.9 0.9 0.85 1"/>')
+                    nb += 1
+    k_f = 0
+    while nb < n_boxes - 4:
+        x, y = rng.uniform(0.8, L - 0.8, 2)
+        yaw = rng.choice([0.0, 90.0, rng.uniform(0, 180)])
+        w, dpt, h = rng.uniform(0.3, 0.8), rng.uniform(0.2, 0.5), rng.uniform(0.4, 1.0)
+        parts = [(0, 0, h, w, dpt, 0.02)] + [(sx * (w - 0.03), sy * (dpt - 0.03), h / 2, 0.03, 0.03, h / 2)
+                                             for sx in (-1, 1) for sy in (-1, 1)]
+        out.append(f'<body name="furniture:table:{k_f}" pos="{x:.3f} {y:.3f} 0" euler="0 0 {yaw:.1f}">')
+        for px, py, pz, hx, hy, hz in parts:
+            out.append(f'<geom type="box" pos="{px:.3f} {py:.3f} {pz:.3f}" size="{hx:.3f} {hy:.3f} {hz:.3f}" '
+                       f'rgba="0.5 0.35 0.2 1"/>')
+        out.append('</body>')
+        nb += len(parts)
+        k_f += 1
+    for k in range(4):
+        out.append(f'<body name="object:apple:{k}" mocap="true" pos="{k} 0 -5"><geom type="sphere" '
+                   f'size="0.045" rgba="0.8 0.1 0.1 1"/></body>')
+    out.append("</worldbody></mujoco>")
+    return "\n".join(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# env benchmark
+
+def _free_poses(sim, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n random (x, y, yaw) where the agent's capsule touches no blocker (native collision check)."""
+    import mujoco
+    m = sim.mj_model
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    floor = [g for g in range(sim.scene_ngeom) if g not in set(sim.blockers)]
+    pts = d.geom_xpos[floor if floor else list(range(sim.scene_ngeom)), :2]
+    lo, hi = pts.min(0), pts.max(0)
+    out = []
+    while len(out) < n:
+        d.qpos[sim.qpos_adr] = [*rng.uniform(lo, hi), rng.uniform(-np.pi, np.pi)]
+        mujoco.mj_fwdPosition(m, d)
+        if d.ncon == 0:
+            out.append(d.qpos[sim.qpos_adr].copy())
+    return np.asarray(out, np.float32)
+
+
+def _time_calls(fn, args_seq, repeats: int) -> float:
+    """Best-of-`repeats` mean seconds per call over args_seq (results blocked at the end)."""
+    import jax
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = None
+        for a in args_seq:
+            out = fn(*a)
+        jax.block_until_ready(out)
+        best = min(best, (time.perf_counter() - t) / len(args_seq))
+    return best
+
+
+class _Native:
+    """The same env step in native MuJoCo: substeps x mj_step + brake + mj_multiRay + lookups."""
+
+    def __init__(self, sim, cam, poses: np.ndarray):
+        import mujoco
+        from . import sensors as SN
+        from . import sim as S
+        self.mujoco, self.sim, self.cam = mujoco, sim, cam
+        self.m = sim.mj_model
+        self.datas = []
+        for p in poses:
+            d = mujoco.MjData(self.m)
+            d.qpos[sim.qpos_adr] = p
+            mujoco.mj_forward(self.m, d)
+            self.datas.append(d)
+        self.ctrl = S.control_profile(sim.config)
+        self.turn = np.radians(sim.config.turn_deg)
+        self.fwd = sim.config.forward_m
+        self.dirs_cam = SN.pixel_directions(cam.config).reshape(-1, 3).astype(np.float64)
+        self.nray = len(self.dirs_cam)
+        self.gid = np.zeros(self.nray, np.int32)
+        self.dist = np.zeros(self.nray)
+        self.inst = np.asarray(cam.geom_instance)
+        self.cls = np.asarray(cam.geom_class)
+        self.rgb = np.asarray(cam.geom_rgb)
+
+    def physics(self, d, action: int):
+        mj = self.mujoco
+        q = d.qpos[self.sim.qpos_adr]
+        c, s = np.cos(q[2]), np.sin(q[2])
+        delta = [np.array([c, s, 0]) * self.fwd, -np.array([c, s, 0]) * self.fwd,
+                 np.array([0, 0, self.turn]), np.array([0, 0, -self.turn]), np.zeros(3)][action]
+        for cn in self.ctrl:
+            d.ctrl[:] = delta * cn
+            mj.mj_step(self.m, d)
+        d.qvel[self.sim.dof_adr] = 0.0
+
+    def render(self, d):
+        cfg = self.cam.config
+        x, y, yaw = d.qpos[self.sim.qpos_adr]
+        p = np.radians(cfg.pitch_deg)
+        cy, sy = np.cos(yaw), np.sin(yaw)
+        rot = np.stack([[sy, -cy, 0.0], [-cy * np.sin(p), -sy * np.sin(p), np.cos(p)],
+                        [cy * np.cos(p), sy * np.cos(p), np.sin(p)]], 1)
+        o = np.array([x + cfg.forward_offset * cy, y + cfg.forward_offset * sy, cfg.mount_height])
+        vec = (self.dirs_cam @ rot.T).ravel()
+        self.mujoco.mj_multiRay(self.m, d, o, vec, None, 1, self.sim.agent_body, self.gid, self.dist,
+                                None, self.nray, cfg.max_depth)
+        hit = (self.gid >= 0) & (self.dist <= cfg.max_depth)
+        g = np.where(hit, self.gid, 0)
+        depth = np.where(hit, self.dist, cfg.max_depth)
+        return depth, np.where(hit, self.inst[g], -1), np.where(hit, self.cls[g], 0), self.rgb[g]
+
+    def time(self, actions: np.ndarray, what: str, repeats: int) -> float:
+        """Best seconds per env step over the (T, B) actions."""
+        best = np.inf
+        for _ in range(repeats):
+            t = time.perf_counter()
+            for row in actions:
+                for d, a in zip(self.datas, row):
+                    if what in ("physics", "env"):
+                        self.physics(d, int(a))
+                    if what in ("render", "env"):
+                        self.render(d)
+            best = min(best, (time.perf_counter() - t) / actions.size)
+        return best
+
+
+def bench_env(scene_path: str | None, num_envs=(1, 16, 64), steps: int = 20, repeats: int = 3,
+              width: int = 32, height: int = 32, backends=("kernel", "kernel-nocull", "mjx"),
+              native_envs: int = 8, seed: int = 0, log=print) -> list[dict]:
+    import jax
+    import jax.numpy as jnp
+
+    from . import sensors as SN
+    from .sim import Simulator
+
+    if scene_path:
+        sim = Simulator.from_file(scene_path)
+        try:
+            from .scenes import load_scene
+            scene = load_scene(scene_path)
+        except Exception:  # unannotated file: generic tables
+            scene = None
+    else:
+        sim = Simulator.from_xml(synthetic_house_xml())
+        scene = None
+    m = sim.mj_model
+    log(f"scene: {scene_path or 'synthetic_house_xml()'}: {m.ngeom} geoms "
+        f"({np.bincount(m.geom_type, minlength=7)[[6, 2, 3]].tolist()} box/sphere/capsule), "
+        f"{len(sim.blockers)} blockers, MJX max_geom_pairs K={sim.max_geom_pairs}, "
+        f"{sim.config.substeps} substeps/step")
+    rng = np.random.default_rng(seed)
+    base = SN.CameraConfig(width=width, height=height)
+    n_box = int((m.geom_type == 6).sum())
+    cams = {}
+    for b in backends:
+        if b == "kernel":
+            cfg = base
+        elif b == "kernel-nocull":
+            cfg = dataclasses.replace(base, k_box=n_box, k_sphere=m.ngeom, k_capsule=m.ngeom)
+        elif b == "mjx":
+            cfg = dataclasses.replace(base, backend="mjx")
+        else:
+            raise ValueError(f"unknown backend {b!r}")
+        cams[b] = SN.Camera.for_simulator(sim, cfg, scene=scene)
+    log(f"camera: {width}x{height}, vfov {base.vfov_deg} deg, max_depth {base.max_depth} m, "
+        f"k_box {base.k_box}")
+
+    rows = []
+    phys = jax.jit(jax.vmap(sim.step))
+    init = jax.jit(jax.vmap(sim.init))
+    pose_fn = jax.jit(jax.vmap(sim.agent_pose))
+    for B in num_envs:
+        poses = _free_poses(sim, B, rng)
+        acts = rng.integers(0, 5, size=(steps, B)).astype(np.int32)
+        d0 = init(jnp.asarray(poses))
+        t = time.perf_counter()
+        d1 = phys(d0, jnp.asarray(acts[0]))
+        jax.block_until_ready(d1)
+        log(f"B={B}: physics compile {time.perf_counter() - t:.1f} s")
+
+        # physics: a chain of steps (each call consumes the previous data)
+        def run_phys(d):
+            for a in acts:
+                d = phys(d, jnp.asarray(a))
+            return d
+        best = np.inf
+        for _ in range(repeats):
+            t = time.perf_counter()
+            jax.block_until_ready(run_phys(d0))
+            best = min(best, (time.perf_counter() - t) / steps)
+        t_phys = best
+        rows.append(dict(num_envs=B, what="physics (MJX)", s_per_batch=t_phys))
+        d_end = run_phys(d0)
+        p_end = pose_fn(d_end)
+
+        for b, cam in cams.items():
+            rend = jax.jit(jax.vmap(cam.render))
+            t = time.perf_counter()
+            out = rend(d_end, p_end)
+            jax.block_until_ready(out)
+            log(f"B={B}: render/{b} compile {time.perf_counter() - t:.1f} s, "
+                f"uncertain rays {int(np.asarray(out.uncertain).sum())}")
+            t_r = _time_calls(rend, [(d_end, p_end)] * steps, repeats)
+            rows.append(dict(num_envs=B, what=f"render/{b}", s_per_batch=t_r))
+
+            def run_env(d):
+                for a in acts:
+                    d = phys(d, jnp.asarray(a))
+                    o = rend(d, pose_fn(d))
+                return d, o
+            best = np.inf
+            for _ in range(repeats):
+                t = time.perf_counter()
+                jax.block_until_ready(run_env(d0))
+                best = min(best, (time.perf_counter() - t) / steps)
+            rows.append(dict(num_envs=B, what=f"env/{b}", s_per_batch=best))
+
+    # native MuJoCo reference (single core, Python loop over envs)
+    nat = _Native(sim, cams[backends[0]], _free_poses(sim, native_envs, rng))
+    acts = rng.integers(0, 5, size=(max(steps // 2, 2), native_envs))
+    nat_t = {w: nat.time(acts, w, repeats) for w in ("physics", "render", "env")}
+    for r in rows:
+        r["steps_per_s"] = r["num_envs"] / r["s_per_batch"]
+        kind = r["what"].split("/")[0].split(" ")[0]
+        r["native_steps_per_s"] = 1.0 / nat_t[kind]
+        r["ratio"] = r["steps_per_s"] / r["native_steps_per_s"]
+    rows.append(dict(num_envs=native_envs, what="native physics (mj_step loop)", s_per_batch=nat_t["physics"] * native_envs,
+                     steps_per_s=1 / nat_t["physics"], native_steps_per_s=1 / nat_t["physics"], ratio=1.0))
+    rows.append(dict(num_envs=native_envs, what="native render (mj_multiRay)", s_per_batch=nat_t["render"] * native_envs,
+                     steps_per_s=1 / nat_t["render"], native_steps_per_s=1 / nat_t["render"], ratio=1.0))
+    rows.append(dict(num_envs=native_envs, what="native env", s_per_batch=nat_t["env"] * native_envs,
+                     steps_per_s=1 / nat_t["env"], native_steps_per_s=1 / nat_t["env"], ratio=1.0))
+    return rows
+
+
+def format_env_rows(rows: list[dict]) -> str:
+    lines = ["| num_envs | what | ms / batch step | env steps / s | native steps / s | ratio |",
+             "| ---: | --- | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        lines.append(f"| {r['num_envs']} | {r['what']} | {1e3 * r['s_per_batch']:.1f} | "
+                     f"{r['steps_per_s']:.0f} | {r['native_steps_per_s']:.0f} | {r['ratio']:.2f} |")
+    return "\n".join(lines)
+
+
+def _add_env_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", default=_DEFAULT_SCENE if os.path.exists(_DEFAULT_SCENE) else None,
+                   help="scene file (default scenes/house.xml); 'synthetic' for a ~300-box house")
+    p.add_argument("--num-envs", type=int, nargs="+", default=[1, 16, 64])
+    p.add_argument("--steps", type=int, default=20, help="timed calls per measurement")
+    p.add_argument("--repeats", type=int, default=3, help="best of this many timed runs")
+    p.add_argument("--width", type=int, default=32)
+    p.add_argument("--height", type=int, default=32)
+    p.add_argument("--backends", nargs="+", default=["kernel", "kernel-nocull", "mjx"],
+                   choices=["kernel", "kernel-nocull", "mjx"])
+    p.add_argument("--native-envs", type=int, default=8)
+
+
+def _run_env(a: argparse.Namespace) -> None:
+    print(machine_info())
+    scene = None if a.scene in (None, "synthetic") else a.scene
+    rows = bench_env(scene, tuple(a.num_envs), a.steps, a.repeats, a.width, a.height,
+                     tuple(a.backends), a.native_envs)
+    print(format_env_rows(rows))
+    if hasattr(os, "getloadavg"):
+        print("load avg at the end: %.1f %.1f %.1f" % os.getloadavg())
+
+
+def _add_graph_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rest", nargs=argparse.REMAINDER, help="arguments of hron_jax.bench_graph")
+
+
+def _run_graph(a: argparse.Namespace) -> None:
+    from . import bench_graph
+    bench_graph.main(a.rest)
+
+
+_SUBCOMMANDS = {
+    "env": (_add_env_args, _run_env, "simulator + camera env steps/s vs native MuJoCo"),
+    "graph": (_add_graph_args, _run_graph, "scene-graph / metric-map update cost"),
+}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m hron_jax.bench", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    for name, (add, _, helptext) in _SUBCOMMANDS.items():
+        add(sub.add_parser(name, help=helptext))
+    a = parser.parse_args(argv)
+    _SUBCOMMANDS[a.cmd][1](a)
+
+
+if __name__ == "__main__":
+    main()
