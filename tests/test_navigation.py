@@ -190,6 +190,27 @@ def test_truncation_is_not_termination_and_final_obs(directed):
                               np.asarray(final['graph'].nodes['pos']))
 
 
+def test_one_render_per_step(directed):
+    """Auto-reset does not render twice: the traced step holds the simulator's step plus exactly
+    one camera render (counted by primitives the renderer uses), and final_obs holds one."""
+    env = directed.env
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    action = jax.ShapeDtypeStruct((), jnp.int32)
+    pose = jax.ShapeDtypeStruct((3,), jnp.float32)
+
+    def count(fn, *args, prim):
+        return str(jax.make_jaxpr(fn)(*args)).count(prim + '[')
+
+    prims = [p for p in ('top_k', 'optimization_barrier', 'argmin', 'sort')
+             if count(env.camera.render, state.inner.data, pose, prim=p) > 0]
+    assert prims
+    for p in prims:
+        per_render = count(env.camera.render, state.inner.data, pose, prim=p)
+        physics = count(env.sim.step, state.inner.data, action, prim=p)
+        assert count(env.step, state, action, prim=p) == physics + per_render, p
+        assert count(env.final_obs, state, prim=p) == per_render, p
+
+
 # ---- episode sampling: satisfiable goals, relation geometry, distractors ------------------------
 
 def _slot_cats(env):

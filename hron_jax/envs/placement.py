@@ -34,7 +34,7 @@ Samplers (one episode; jit / vmap them)
 random satisfiable goal (object, relation, furniture, room) of the scene's goal table, a uniform
 slot realising it and a uniform usable point of that slot, a random pool instance of the object;
 start in a uniformly random room on a uniformly random main free cell of it whose geodesic distance
-to the success region exceeds `min_start_distance`, uniform yaw.
+to the success region exceeds `min_start_distance` (by rejection, see _start_cell), uniform yaw.
 `sample_directed(key, tables, num_distractors)` -> Episode: a random "pair" (object category, one
 slot on each half of the mirror plane x = centre of the scene's bounds, furniture of the same
 category, different relations); both halves get an instance of the object, the goal (object,
@@ -119,6 +119,9 @@ class EpisodeTables:
     obj_cat: np.ndarray         # i32[O] object vocabulary index of each pool entry
     obj_half: np.ndarray        # f32[O, 3] half extents of each pool entry
     room_cell: np.ndarray       # i32[H*W] room of each reachable free cell, -1 elsewhere
+    room_cells: np.ndarray      # i32[R', C] flat cells of each room that has main free cells (padded)
+    room_ncells: np.ndarray     # i32[R'] how many
+    point_far_cell: np.ndarray  # i32[P] the main cell farthest (geodesically) from each point
     num_rooms: int
     start_pose: np.ndarray      # f32[3] start:0 (x, y, yaw), or the reference cell with yaw 0
     reach: np.ndarray           # f32[H, W] geodesic distance from the reference point (diagnostics)
@@ -264,6 +267,14 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     centres = np.asarray(grid.centres()).reshape(-1, 2)
     rooms = scene.room_at(centres)
     room_cell = np.where(main.reshape(-1) & free.reshape(-1), rooms, -1).astype(np.int32)
+    per_room = [np.nonzero(room_cell == r)[0] for r in range(scene.num_rooms)]
+    per_room = [c for c in per_room if len(c)]
+    room_cells = np.zeros((len(per_room), max(len(c) for c in per_room)), np.int32)
+    for r, c in enumerate(per_room):
+        room_cells[r, :len(c)] = c
+    room_ncells = np.array([len(c) for c in per_room], np.int32)
+    flat = fields.reshape(len(fields), -1)
+    point_far_cell = np.argmax(np.where(main.reshape(-1) & np.isfinite(flat), flat, -1.0), -1)
 
     dtype = np.float16 if config.field_dtype == 'float16' else np.float32
     # Keep inf as inf in float16 (finite distances here are < 65504 m).
@@ -274,7 +285,9 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
         slot_furniture=furn, slot_relation=scene.slot_relation.astype(np.int32),
         slot_furn_cat=slot_furn_cat, slot_room_cat=slot_room_cat,
         goals=goals, goal_ok=goal_ok, goal_slots=goal_slots, pairs=pairs,
-        obj_cat=obj_cat, obj_half=obj_half, room_cell=room_cell, num_rooms=scene.num_rooms,
+        obj_cat=obj_cat, obj_half=obj_half, room_cell=room_cell, room_cells=room_cells,
+        room_ncells=room_ncells, point_far_cell=point_far_cell.astype(np.int32),
+        num_rooms=scene.num_rooms,
         start_pose=np.array([ref_xy[0], ref_xy[1], ref_yaw], np.float32), reach=reach)
 
 
@@ -362,10 +375,29 @@ def _empty(t: EpisodeTables):
     return Placement.empty(o), jnp.full((o,), -1, jnp.int32)
 
 
+def _start_cell(key, t: EpisodeTables, point, min_distance: float, tries: int = 16):
+    """Flat index of a start cell: a uniformly random room, then a uniformly random main free cell
+    of it, kept if its geodesic distance to the point's success region exceeds min_distance; the
+    first of `tries` such draws that is kept (else the point's farthest cell). Rejection keeps the
+    cost at a few lookups: a categorical over all H*W cells would draw H*W random numbers per
+    reset, which dominated the auto-reset's cost (resets are evaluated at every step)."""
+    k_room, k_idx = jax.random.split(key)
+    nrooms = t.room_ncells.shape[0]
+    room = jax.random.randint(k_room, (tries,), 0, nrooms)
+    n = jnp.asarray(t.room_ncells)[room]
+    idx = jnp.minimum((jax.random.uniform(k_idx, (tries,)) * n).astype(jnp.int32), n - 1)
+    cells = jnp.asarray(t.room_cells)[room, idx]
+    w = t.grid.free.shape[1]
+    d = jnp.asarray(t.fields)[point, cells // w, cells % w].astype(jnp.float32)
+    ok = (d > min_distance) & jnp.isfinite(d)
+    first = jnp.argmax(ok)
+    return jnp.where(ok[first], cells[first], jnp.asarray(t.point_far_cell)[point])
+
+
 def sample_exploratory(key, t: EpisodeTables, num_distractors: int = 0,
                        min_start_distance: float = 1.0) -> Episode:
     """One exploratory-task episode (module docstring). num_distractors is static."""
-    k_goal, k_slot, k_pt, k_inst, k_dis, k_room, k_cell, k_yaw = jax.random.split(key, 8)
+    k_goal, k_slot, k_pt, k_inst, k_dis, k_room, k_yaw = jax.random.split(key, 7)
     q = _choice(k_goal, jnp.asarray(t.goal_ok))
     goal = jnp.asarray(t.goals)[q]
     o = goal[0]
@@ -378,14 +410,7 @@ def sample_exploratory(key, t: EpisodeTables, num_distractors: int = 0,
     exclude = jnp.arange(t.obj_cat.shape[0]) == target
     pl, slots = _distractors(k_dis, t, pl, slots, used, goal, exclude, num_distractors)
 
-    # Start: a random room with a main free cell far enough from the success region, then a cell.
-    d = field(t, p).reshape(-1)
-    room_cell = jnp.asarray(t.room_cell)
-    far = (room_cell >= 0) & (d > min_start_distance) & jnp.isfinite(d)
-    has = jnp.zeros((t.num_rooms,), bool).at[jnp.where(far, room_cell, t.num_rooms)].set(
-        True, mode='drop')
-    room = _choice(k_room, has)
-    cell = _choice(k_cell, far & (room_cell == room))
+    cell = _start_cell(k_room, t, p, min_start_distance)
     w = t.grid.free.shape[1]
     cxy = t.grid.cell_to_world(jnp.stack([cell // w, cell % w]))
     yaw = jax.random.uniform(k_yaw, (), jnp.float32, -jnp.pi, jnp.pi)
