@@ -21,8 +21,9 @@ velocity). One env step = `config.env_dt` = 0.1 s of simulated time (500 steps =
 The agent
 ---------
 Body `agent` with slide joints `agent:x`, `agent:y` (world axes, they come first) and hinge
-`agent:yaw`, so qpos[agent] = (x, y, yaw). Its collision shape is one vertical capsule of radius 0.2 m
-from `bottom_clearance` (0.05 m, so floor seams and door thresholds never block it) to 1.2 m. The
+`agent:yaw`, so qpos[agent] = (x, y, yaw). Its body is a vertical capsule of radius 0.2 m from
+`bottom_clearance` (0.05 m, so floor seams and door thresholds never block it) to 1.2 m; the
+collision geom is that capsule grown by `contact_skin` (see below). The
 capsule is the only geom with contype=1; the geoms that should block it (walls, furniture: every geom
 that is not a room floor, not a mocap object, and reaches into the capsule's height range) get
 conaffinity=1, everything else contype=conaffinity=0. Static-static pairs never exist, so the
@@ -43,15 +44,19 @@ c_n = ((1 + a) u_{n+1} - u_n) / a make v follow the plan exactly in free space, 
 0.2 m / turns 30 deg to float precision and ends the step at rest, independent of mass and gains.
 Why this and not a position servo: a position servo must be stiff to settle 0.2 m within 0.1 s
 (omega ~ 80 /s), and when a wall blocks it that stiffness times the remaining distance pushes the
-capsule into the (soft) contact; here the push against a wall is only kv * (planned velocity), and
-a small a (0.5) keeps it low, while the trapezoid caps travel per substep (2.9 cm) below the contact
-margin (2 cm) plus a few mm, so contacts are detected before the capsule penetrates (no tunnelling:
-walls are far thicker than one substep's travel). Contacts are frictionless (condim 1), so turning
-in contact is not resisted and the agent slides along walls it meets obliquely. When blocked, the
-controller's last deceleration substep pulls back a few mm and the contact spring pushes the capsule
-out to the margin, so the agent rests 0-3 cm from the wall surface, never inside it. Finally a brake
-zeroes the agent's qvel after the last substep (STOP and blocked motions included), so no velocity
-ever carries into the next step: each action is a self-contained motion primitive, as in the paper.
+capsule deep into the (soft) contact; here the push against a wall is only kv * (planned velocity),
+and a small a (0.5) keeps it low (a = 1 already lets the capsule sink 14 mm; measured).
+Contacts: the collision capsule is the body radius plus a 2 cm skin (`contact_skin`), because MJX's
+capsule-box collider reports only penetrating contacts (it ignores geom margins: measured, dist = 1
+for separated pairs), so the early-contact zone must be part of the shape. The trapezoid caps travel
+at 2.9 cm per substep, about the skin, so the body capsule (radius 0.2) is never inside a wall at
+the end of a step (worst -0.6 mm over contact at every phase of a step, MJX and native alike) and
+cannot tunnel (walls are far thicker than one substep's travel). Contacts are frictionless
+(condim 1): turning in contact is not resisted and the agent slides along walls it meets obliquely.
+When blocked, the skin and the controller's last deceleration substep (a small pull-back) leave
+the body capsule resting 2-3 cm from the wall surface. Finally a brake zeroes the agent's qvel after
+the last substep (in free space it is zero already; it matters in contact), so no velocity ever
+carries into the next step: each action is a self-contained motion primitive, as in the paper.
 
 Shapes: pose f32[3]; mocap_pos f32[nmocap, 3]; mocap_quat f32[nmocap, 4] (w, x, y, z); action i32[].
 After `step`, `d.qpos`/`d.qvel` are final; `d.geom_xpos`/`geom_xmat` are those of the last substep's
@@ -95,7 +100,7 @@ class SimConfig:
     turn_deg: float = 30.0          # TURN_LEFT / TURN_RIGHT rotation (deg)
     ramp_substeps: int = 3          # trapezoid velocity plan: substeps to reach cruise speed
     servo_gain: float = 0.5         # a = dt kv / m of the implicit velocity servos (see docstring)
-    contact_margin: float = 0.02    # contacts activate this far before touching (m)
+    contact_skin: float = 0.02      # collision capsule = radius + skin: contacts start this far out
     contact_solref: tuple = (0.02, 1.0)                    # timeconst >= 2 dt (MuJoCo's refsafe)
     contact_solimp: tuple = (0.95, 0.99, 0.001, 0.5, 2.0)  # stiff: little give under the servo push
     max_geom_pairs: Optional[int] = None  # None: smallest K that never drops a live contact
@@ -139,13 +144,16 @@ def _add_agent(spec: mujoco.MjSpec, cfg: SimConfig) -> None:
     body.inertia = [izz, izz, izz]
     z0 = cfg.bottom_clearance + cfg.radius
     z1 = cfg.height - cfg.radius
+    # The collision capsule is the body (radius) plus a skin: MJX's capsule-box collider reports only
+    # penetrating contacts (dist = 1 otherwise, so geom margins are ignored; measured), hence the
+    # early-contact zone is built into the radius. For capsule-box this equals a native margin.
     geom = body.add_geom(name=AGENT_GEOM, type=mujoco.mjtGeom.mjGEOM_CAPSULE,
-                         size=[cfg.radius, 0.0, 0.0], fromto=[0.0, 0.0, z0, 0.0, 0.0, z1])
+                         size=[cfg.radius + cfg.contact_skin, 0.0, 0.0],
+                         fromto=[0.0, 0.0, z0, 0.0, 0.0, z1])
     geom.rgba = list(cfg.agent_rgba)
     geom.contype, geom.conaffinity = 1, 0
     geom.condim = 1                    # frictionless: turning in contact is free, walls are slid along
     geom.priority = 10                 # the agent's contact parameters win over the scene's
-    geom.margin = cfg.contact_margin
     geom.solref = list(cfg.contact_solref)
     geom.solimp = list(cfg.contact_solimp)
     for jname, inertia in zip(AGENT_JOINTS, (cfg.mass, cfg.mass, izz)):
@@ -181,7 +189,7 @@ def _auto_max_geom_pairs(m, d, agent_geom, blockers, cfg: SimConfig, grid: float
     """Smallest K for MJX's bounding-sphere top-K broadphase that keeps every possible contact.
 
     For agent positions on a grid covering the blockers' extent, a blocker can be in contact only if
-    its AABB overlaps the capsule's AABB grown by the margin; MJX ranks pairs by
+    its AABB overlaps the collision capsule's AABB; MJX ranks pairs by
     |c_agent - c_geom| - rbound_agent - rbound_geom. K = 1 + the worst rank of a possibly-touching
     blocker over all positions (ties counted against us).
     """
@@ -194,10 +202,10 @@ def _auto_max_geom_pairs(m, d, agent_geom, blockers, cfg: SimConfig, grid: float
     xs = np.arange(lo[0], hi[0] + grid, grid)
     ys = np.arange(lo[1], hi[1] + grid, grid)
     zc = 0.5 * (cfg.bottom_clearance + cfg.height)
-    zh = 0.5 * (cfg.height - cfg.bottom_clearance) + cfg.contact_margin
+    zh = 0.5 * (cfg.height - cfg.bottom_clearance) + cfg.contact_skin
     rb = m.geom_rbound[blockers]
     rb_agent = m.geom_rbound[agent_geom]
-    reach = cfg.radius + cfg.contact_margin
+    reach = cfg.radius + cfg.contact_skin
     z_overlap = np.abs(cb[:, 2] - zc) <= hb[:, 2] + zh
     worst = 0
     for x in xs:  # one row of the grid at a time keeps memory at len(ys) x len(blockers)
@@ -253,7 +261,8 @@ class Simulator:
                              for g in range(m.ngeom)])
         is_mocap = m.body_mocapid[root[m.geom_bodyid]] >= 0
         c, h = _geom_world_aabb(m, d)
-        reaches = (c[:, 2] + h[:, 2] > cfg.bottom_clearance) & (c[:, 2] - h[:, 2] < cfg.height)
+        reaches = ((c[:, 2] + h[:, 2] > cfg.bottom_clearance - cfg.contact_skin)
+                   & (c[:, 2] - h[:, 2] < cfg.height + cfg.contact_skin))
         is_scene = np.arange(m.ngeom) < self.scene_ngeom
         block = is_scene & ~is_floor & ~is_mocap & reaches
         m.geom_contype[:] = 0

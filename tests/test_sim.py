@@ -42,6 +42,7 @@ SCENE = """
 """
 WALL_X = 3.0
 R = S.SimConfig().radius
+NB = 20  # one batch size for every vmapped test: one compile
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +106,7 @@ def test_velocity_plan_properties():
     dt = cfg.env_dt / cfg.substeps
     assert u[0] == 0 and u[-1] == 0 and abs(u.sum() * dt - 1) < 1e-12
     # per-substep travel stays near the contact margin (contacts are seen before deep penetration)
-    assert u.max() * dt * cfg.forward_m < cfg.contact_margin + 0.01
+    assert u.max() * dt * cfg.forward_m < cfg.contact_skin + 0.01
     # deadbeat controls reproduce the plan on the implicit velocity servo in free space
     c = S.control_profile(cfg)
     a, v, q = cfg.servo_gain, 0.0, 0.0
@@ -134,11 +135,13 @@ def test_wall_stops_agent(sim, fns):
 
 
 def test_wall_all_start_offsets(sim, fns):
-    """Contact at every phase of a step (start offsets in 1 cm increments): never > 1 cm inside."""
-    starts = np.stack([WALL_X - R - 0.2 - np.arange(0.0, 0.2, 0.01), np.zeros(20), np.zeros(20)], -1)
+    """Contact at every phase of a step (start offsets ~1 cm apart over one step's travel): the
+    body capsule never ends a step more than 1 cm inside (measured worst: 0.6 mm outside)."""
+    off = np.linspace(0.0, 0.2, NB, endpoint=False) + 0.0037
+    starts = np.stack([WALL_X - R - 0.2 - off, np.zeros(NB), np.zeros(NB)], -1)
     d = fns["vinit"](jnp.asarray(starts, jnp.float32))
     for _ in range(3):
-        d = fns["vstep"](d, jnp.full((20,), S.FORWARD, jnp.int32))
+        d = fns["vstep"](d, jnp.full((NB,), S.FORWARD, jnp.int32))
         x = np.asarray(d.qpos[:, sim.qpos_adr[0]])
         assert np.all(x <= WALL_X - R + 0.01), x
     assert np.all(x >= WALL_X - R - 0.04), x
@@ -160,12 +163,17 @@ def test_oblique_wall_slides_never_crosses(sim, fns):
 
 
 def test_vmap_equals_single_runs(sim, fns):
-    poses = np.array([[0.0, 0.0, 0.0], [2.5, 0.5, 0.1], [-1.0, 2.0, 2.0], [1.0, -1.0, -2.5]])
-    acts = np.array([[0, 2, 0, 1, 4, 3], [0, 0, 0, 0, 3, 0], [1, 1, 2, 0, 0, 4], [3, 3, 0, 0, 2, 1]])
+    """A batch of NB envs (random poses, some running into walls) equals NB single runs."""
+    rng = np.random.default_rng(0)
+    poses = np.concatenate([np.array([[0.0, 0.0, 0.0], [2.5, 0.5, 0.1], [-1.0, 2.0, 2.0]]),
+                            np.stack([rng.uniform(-2.5, 2.7, NB - 3), rng.uniform(-2.5, 2.5, NB - 3),
+                                      rng.uniform(-3, 3, NB - 3)], -1)])
+    acts = rng.integers(0, 5, size=(NB, 6))
+    acts[1] = [0, 0, 0, 0, 3, 0]                  # env 1 drives into the east wall
     db = fns["vinit"](jnp.asarray(poses, jnp.float32))
     for t in range(acts.shape[1]):
         db = fns["vstep"](db, jnp.asarray(acts[:, t], jnp.int32))
-    for i in range(4):
+    for i in range(NB):
         d = _pose(fns, sim, poses[i])
         for t in range(acts.shape[1]):
             d = fns["step"](d, jnp.int32(acts[i, t]))
