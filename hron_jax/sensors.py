@@ -46,7 +46,17 @@ dropped ones all have t_enter >= E, the largest kept t_enter; a ray whose found 
 is therefore exact, and any other ray in an overflowing column counts in `uncertain`. With K large
 enough for the scene (the tests check house views give uncertain == 0 and agree with mj_ray), the
 kernel is exact; `uncertain > 0` says K is too small for that view. Nonzero pitch is supported (the
-projection is then onto the tilted camera's X-Z plane); roll is not.
+projection is then onto the tilted camera's X-Z plane); roll is not. Spheres and capsules are
+culled the same way when a scene has more of them than k_sphere / k_capsule, else all are tested.
+
+Measured on scenes/house.xml (281 boxes; 32 x 32, 120 deg, max_depth 10 m): boxes passing the
+column test per column: mean 8.7, p99 23, max 43 over 300 random poses (inside furniture included).
+k_box = 32 (default): 0 uncertain rays in 108 room-centre views, a few in 0.9% of random-pose frames
+(8e-5 of all rays); k_box = 48: none in 320 random frames. CPU cost at batch 64 (2-core EPYC,
+shared): ~50 ms per batch with culling vs ~240 ms testing every geom and ~950 ms with mjx.ray.
+XLA:CPU traps met on the way (each cost ~5-10x): components as separate arrays, not trailing axes
+of size 3; min and argmin as one variadic reduce; top_k values used as a whole slice (see
+render_geoms); the column scores materialised once (optimization_barrier).
 
 Shapes of the static tables: `geom_instance`, `geom_class` (ngeom,) int32 over the full model
 (scene geoms first, then the agent's: use `Simulator.geom_tables`).
@@ -68,7 +78,6 @@ _BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
 _SPHERE = int(mujoco.mjtGeom.mjGEOM_SPHERE)
 _CAPSULE = int(mujoco.mjtGeom.mjGEOM_CAPSULE)
 _TYPES = (_BOX, _SPHERE, _CAPSULE)
-_BIG = 1e30
 _EPS = 1e-12
 
 
