@@ -8,6 +8,8 @@ table and the machine it ran on. Subcommands register in `_SUBCOMMANDS` (name ->
             backend, for each --num-envs; and the same work done by native MuJoCo in a Python loop
             (mj_step substeps + mj_multiRay on the same rays, numpy lookups), with the ratio.
     graph   scene-graph / metric-map update cost (delegates to hron_jax.bench_graph).
+    model   forward and forward+grad ms of every model variant on a batch of house scene graphs
+            (`bench_model`: round-robin over variants, median of --reps).
 
 `env` in detail. Poses are random collision-free positions of the scene (seeded), actions are
 uniform over the 5 actions. Per num_envs B:
@@ -366,9 +368,130 @@ def _run_graph(a: argparse.Namespace) -> None:
     bench_graph.main(a.rest)
 
 
+# ---------------------------------------------------------------------------------------------
+# model benchmark: forward and forward+grad of every actor-critic variant on house graphs
+
+def model_inputs(batch: int = 64, scene_path: str = _DEFAULT_SCENE, image: int = 32, seed: int = 0):
+    """A batch of observations following hron_jax.models' contract: scene graphs of `scene_path`
+    from GraphBuilder with every node discovered and every pool object placed in a random slot
+    (house.xml: N=71, E=194), random poses, random RGB-D / map images, random goals."""
+    import jax
+    import jax.numpy as jnp
+
+    from . import goals as GL
+    from .graph_builder import GraphBuilder, GraphConfig, Placement
+    from .scenes import load_scene
+    from .scenes import vocabulary as V
+
+    rng = np.random.default_rng(seed)
+    scene = load_scene(scene_path)
+    gb = GraphBuilder(scene, GraphConfig())
+    o0 = scene.num_rooms + scene.num_furniture
+    half = V.OBJECT_HALF[scene.vocab_index[o0:]]
+    slot = rng.integers(scene.num_slots, size=(batch, scene.num_objects))
+    support = scene.slot_center[:, 2] - scene.slot_half[:, 2]
+    pos = np.concatenate([scene.slot_center[slot, :2], (support[slot] + half[None, :, 2])[..., None]], -1)
+    placement = Placement(active=jnp.ones((batch, scene.num_objects), bool),
+                          pos=jnp.asarray(pos, jnp.float32),
+                          furniture=jnp.asarray(scene.slot_furniture[slot], jnp.int32),
+                          relation=jnp.asarray(scene.slot_relation[slot], jnp.int32))
+    lo, hi = scene.bounds[0, :2], scene.bounds[1, :2]
+    poses = jnp.asarray(np.concatenate([rng.uniform(lo, hi, (batch, 2)),
+                                        rng.uniform(-np.pi, np.pi, (batch, 1))], -1), jnp.float32)
+    disc = jnp.broadcast_to(gb.real, (batch, gb.max_nodes))
+    graph = jax.jit(jax.vmap(gb.graph))(disc, placement, poses)
+    cat = np.asarray(graph.nodes["category"])
+    pick = rng.integers(0, gb.max_nodes, (batch, 3))
+    goal = np.zeros((batch, GL.GOAL_DIM), np.float32)
+    goal[np.arange(batch)[:, None], rng.integers(0, GL.GOAL_DIM, (batch, 3))] = 1.0
+    obs = dict(graph=graph, goal=jnp.asarray(goal),
+               goal_classes=jnp.asarray(np.take_along_axis(cat, pick, 1), jnp.int32),
+               rgbd=jnp.asarray(rng.random((batch, image, image, 4)), jnp.float32),
+               map=jnp.asarray(rng.random((batch, image, image, 3)), jnp.float32))
+    return obs, gb
+
+
+def bench_model(variants=("rgbd", "rgbd_mm", "rgbd_sg", "rgbd_sg_attn", "gcn", "yang"),
+                batch: int = 64, reps: int = 20, scene_path: str = _DEFAULT_SCENE, seed: int = 0,
+                log=print) -> list[dict]:
+    """Rows {variant, fwd_ms, grad_ms, compile_s} at `batch` (default model sizes).
+
+    fwd = jit(model.apply); grad = jit(value_and_grad) of a PPO-like scalar (log-prob of action 0
+    + squared value) w.r.t. all parameters. Parameters are scaled normals (timing does not depend
+    on them; flax init would cost ~10 s of compile per variant). The variants are timed round
+    robin, one call each per round, and the median over `reps` rounds is reported, so a load change
+    on a shared machine hits every variant alike.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from .models import make_model
+
+    obs, gb = model_inputs(batch, scene_path, seed=seed)
+    log(f"batch {batch}: N={gb.max_nodes} nodes, E={gb.max_edges} edges "
+        f"(live {int(np.asarray(obs['graph'].edges['mask']).sum()) / batch:.0f}/graph)")
+    one = jax.tree.map(lambda a: a[0], obs)
+    fns = {}
+    for name in variants:
+        model = make_model(name, 5)
+        shapes = jax.eval_shape(model.init, jax.random.PRNGKey(0), one)
+        r = np.random.default_rng(seed)
+        variables = jax.tree.map(lambda s: jnp.asarray(
+            r.standard_normal(s.shape) / np.sqrt(max(int(np.prod(s.shape[:-1])), 1)), s.dtype), shapes)
+
+        def loss(v, o, model=model):
+            logits, value = model.apply(v, o)
+            return jnp.sum(jax.nn.log_softmax(logits)[:, 0]) + jnp.sum(value ** 2)
+
+        fwd, grad = jax.jit(model.apply), jax.jit(jax.value_and_grad(loss))
+        t = time.perf_counter()
+        jax.block_until_ready(fwd(variables, obs))
+        jax.block_until_ready(grad(variables, obs))
+        fns[name] = (fwd, grad, variables, time.perf_counter() - t)
+    times = {name: ([], []) for name in variants}
+    for _ in range(reps):
+        for name, (fwd, grad, v, _) in fns.items():
+            for f, acc in zip((fwd, grad), times[name]):
+                t = time.perf_counter()
+                jax.block_until_ready(f(v, obs))
+                acc.append(time.perf_counter() - t)
+    return [dict(variant=name, fwd_ms=1e3 * float(np.median(times[name][0])),
+                 grad_ms=1e3 * float(np.median(times[name][1])), compile_s=fns[name][3])
+            for name in variants]
+
+
+def format_model_rows(rows: list[dict], batch: int) -> str:
+    ref = {r["variant"]: r for r in rows}.get("gcn")
+    lines = [f"| variant | forward ms (B={batch}) | fwd+grad ms (B={batch}) | fwd / gcn | grad / gcn | compile s |",
+             "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        rel = (f"{r['fwd_ms'] / ref['fwd_ms']:.2f} | {r['grad_ms'] / ref['grad_ms']:.2f}" if ref
+               else "- | -")
+        lines.append(f"| {r['variant']} | {r['fwd_ms']:.1f} | {r['grad_ms']:.1f} | {rel} | "
+                     f"{r['compile_s']:.1f} |")
+    return "\n".join(lines)
+
+
+def _add_model_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--variants", nargs="+",
+                   default=["rgbd", "rgbd_mm", "rgbd_sg", "rgbd_sg_attn", "gcn", "yang"])
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--reps", type=int, default=20, help="timed rounds (median reported)")
+    p.add_argument("--scene", default=_DEFAULT_SCENE)
+
+
+def _run_model(a: argparse.Namespace) -> None:
+    print(machine_info())
+    rows = bench_model(tuple(a.variants), a.batch, a.reps, a.scene)
+    print(format_model_rows(rows, a.batch))
+    if hasattr(os, "getloadavg"):
+        print("load avg at the end: %.1f %.1f %.1f" % os.getloadavg())
+
+
 _SUBCOMMANDS = {
     "env": (_add_env_args, _run_env, "simulator + camera env steps/s vs native MuJoCo"),
     "graph": (_add_graph_args, _run_graph, "scene-graph / metric-map update cost"),
+    "model": (_add_model_args, _run_model, "actor-critic forward / forward+grad ms per variant"),
 }
 
 
