@@ -24,9 +24,10 @@ below 16 m, half the memory of float32).
 
 Reachability: the "main" free space is what the agent can reach from the scene's `start:0` site
 (or, without one, from the most central free cell of the largest room). A candidate point is usable
-only when its success region is reachable from there, a slot only when it has a usable point for
-the object, a goal only when one of its slots is usable (so only satisfiable goals are sampled),
-and agents only start on main free cells.
+only when a main free cell lies `robust_margin` inside its success disk (so success never hinges
+on a cm-precise move into a sliver of the disk), a slot only when it has a usable point for the
+object, a goal only when one of its slots is usable (so only satisfiable goals are sampled), and
+agents only start on main free cells.
 
 Samplers (one episode; jit / vmap them)
 ---------------------------------------
@@ -77,6 +78,7 @@ _NUM_OBJ = len(V.OBJECTS)
 class PlacementConfig:
     slot_grid: int = 2              # candidate points per slot = slot_grid ** 2
     success_distance: float = 1.0   # m, xy radius of the success region
+    robust_margin: float = 0.25     # m; a usable target has a main free cell this far inside its disk
     cell_size: float = 0.1          # occupancy grid (m)
     agent_radius: float = 0.2       # inflation of the occupancy grid (the simulator's capsule)
     agent_height: float = 1.2
@@ -230,8 +232,13 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     point_xy = (uniq / 1000.0).astype(np.float32)
     fields = np.asarray(success_fields(grid, jnp.asarray(point_xy), config.success_distance,
                                        stencil=config.stencil))
-    # A point is usable when a main free cell lies in its success disk (the agent can stand there).
-    point_ok = np.array([(f[main] == 0).any() for f in fields]) if len(fields) else np.zeros(0, bool)
+    # A point is usable when a main free cell lies robust_margin inside its success disk. Points
+    # whose disk meets free space only in a sliver (an object deep under a bed, or behind a wall)
+    # need cm-precise final moves that 0.2 m steps and 30 deg turns cannot reliably make.
+    centres = np.asarray(grid.centres())[main]
+    inner = config.success_distance - config.robust_margin
+    point_ok = np.array([(np.linalg.norm(centres - q, axis=-1) <= inner).any() for q in point_xy],
+                        bool).reshape(-1)
     slot_point = inv.reshape(s, k).astype(np.int32)
     slot_point_ok = point_ok[slot_point] & any_fit[:, None]
 
