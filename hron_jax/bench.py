@@ -8,6 +8,8 @@ table and the machine it ran on. Subcommands register in `_SUBCOMMANDS` (name ->
             backend, for each --num-envs; and the same work done by native MuJoCo in a Python loop
             (mj_step substeps + mj_multiRay on the same rays, numpy lookups), with the ratio.
     graph   scene-graph / metric-map update cost (delegates to hron_jax.bench_graph).
+    train   PPO training throughput (env + update) of train.py's program, per --num-envs
+            (function `bench_train` below).
     model   forward and forward+grad ms of every model variant on a batch of house scene graphs
             (`bench_model`: round-robin over variants, median of --reps).
 
@@ -488,10 +490,98 @@ def _run_model(a: argparse.Namespace) -> None:
         print("load avg at the end: %.1f %.1f %.1f" % os.getloadavg())
 
 
+# ---------------------------------------------------------------------------------------------
+# train benchmark
+
+def bench_train(task: str = "exploratory", model: str = "rgbd_sg_attn", num_envs=(16, 64, 256),
+                num_steps: int = 8, minibatch_size: int = 128, epochs: int | None = None,
+                repeats: int = 2, extra: dict | None = None, log=print) -> list[dict]:
+    """Env steps/s of one PPO update of the program train.py runs (hron_jax.training, one seed),
+    for each num_envs: a rollout of num_steps steps of num_envs envs plus `epochs` epochs over
+    minibatches of ~minibatch_size samples (the paper's 128); and of the rollout alone
+    (PPO.evaluate with the sampled policy: env + policy forward), so the update's share shows.
+    Times: best of `repeats` calls after compilation. extra: more train.py options (dest names)."""
+    import jax
+
+    from . import training as T
+
+    rows = []
+    for B in num_envs:
+        batch = B * num_steps
+        args = dict(task=task, model=model, num_envs=B, num_steps=num_steps, total_steps=batch,
+                    minibatches=max(1, batch // minibatch_size), **(extra or {}))
+        if epochs is not None:
+            args["epochs"] = epochs
+        cfg = T.config_from_args(args)
+        t = time.perf_counter()
+        prog = T.programs(cfg)
+        runner = prog.init(T.seed_keys(cfg))
+        jax.block_until_ready(runner)
+        t_init = time.perf_counter() - t
+        fn, t_compile = prog.compiled_chunk(1)
+        best = np.inf
+        for _ in range(repeats):
+            t = time.perf_counter()
+            runner, m = fn(runner)
+            jax.block_until_ready((runner, m))
+            best = min(best, time.perf_counter() - t)
+        params = jax.tree.map(lambda x: x[0], runner.params)
+        ev = jax.jit(prog.ppo.evaluate, static_argnums=(2, 3))
+        t = time.perf_counter()
+        jax.block_until_ready(ev(params, jax.random.PRNGKey(1), num_steps, False))
+        t_ev_compile = time.perf_counter() - t
+        best_ev = np.inf
+        for i in range(repeats):
+            t = time.perf_counter()
+            jax.block_until_ready(ev(params, jax.random.PRNGKey(2 + i), num_steps, False))
+            best_ev = min(best_ev, time.perf_counter() - t)
+        row = dict(num_envs=B, minibatches=cfg.ppo.num_minibatches, epochs=cfg.ppo.update_epochs,
+                   compile_s=t_init + t_compile + t_ev_compile, s_per_update=best,
+                   train_steps_per_s=batch / best, rollout_steps_per_s=batch / best_ev,
+                   update_share=max(0.0, 1.0 - best_ev / best))
+        log(f"B={B}: init {t_init:.1f} s, compile {t_compile:.1f} s, {batch / best:.0f} train steps/s")
+        rows.append(row)
+    return rows
+
+
+def format_train_rows(rows: list[dict]) -> str:
+    lines = ["| num_envs | minibatches x epochs | compile s | s / update | train env steps / s | "
+             "rollout-only steps / s | update share |",
+             "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        lines.append(f"| {r['num_envs']} | {r['minibatches']} x {r['epochs']} | {r['compile_s']:.0f} | "
+                     f"{r['s_per_update']:.3f} | {r['train_steps_per_s']:.0f} | "
+                     f"{r['rollout_steps_per_s']:.0f} | {100 * r['update_share']:.0f}% |")
+    return "\n".join(lines)
+
+
+def _add_train_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--task", default="exploratory", choices=("choice", "directed", "exploratory"))
+    p.add_argument("--model", default="rgbd_sg_attn")
+    p.add_argument("--num-envs", type=int, nargs="+", default=[16, 64, 256])
+    p.add_argument("--num-steps", type=int, default=8, help="rollout length per update")
+    p.add_argument("--minibatch-size", type=int, default=128)
+    p.add_argument("--epochs", type=int, default=None, help="default: the task's PPO default")
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--distractors", action="store_true")
+
+
+def _run_train(a: argparse.Namespace) -> None:
+    print(machine_info())
+    extra = {"distractors": True} if a.distractors else {}
+    rows = bench_train(a.task, a.model, tuple(a.num_envs), a.num_steps, a.minibatch_size, a.epochs,
+                       a.repeats, extra)
+    print(f"task {a.task}, model {a.model}, num_steps {a.num_steps}, minibatch ~{a.minibatch_size}")
+    print(format_train_rows(rows))
+    if hasattr(os, "getloadavg"):
+        print("load avg at the end: %.1f %.1f %.1f" % os.getloadavg())
+
+
 _SUBCOMMANDS = {
     "env": (_add_env_args, _run_env, "simulator + camera env steps/s vs native MuJoCo"),
     "graph": (_add_graph_args, _run_graph, "scene-graph / metric-map update cost"),
     "model": (_add_model_args, _run_model, "actor-critic forward / forward+grad ms per variant"),
+    "train": (_add_train_args, _run_train, "PPO train env steps/s (env + update) per num_envs"),
 }
 
 
