@@ -22,11 +22,13 @@ numerically in tests/test_models.py against outputs saved by tools/make_pyg_refe
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import flax.linen as nn
+import numpy as np
 
 from hron_jax import graph_types as gt
 
@@ -79,14 +81,168 @@ def masked_segment_softmax(logits, live, segment_ids, num_segments):
     return e / denom[segment_ids]
 
 
-def _typed_dense(x, types, kernel, bias):
-    """Per-node-type affine map: out[n] = x[n] @ kernel[types[n]] + bias[types[n]].
+# ---------------------------------------------------------------------------------------------
+# HGT internals: nodes grouped by type in blocks, relation transforms per source-type slot
 
-    All types are applied to all nodes and the right one selected: with 3 types this costs 3x a
-    plain Dense but avoids gathering an [N, in, out] weight tensor.
+@functools.lru_cache(maxsize=None)
+def _relation_slots(num_node_types: int, num_relations: int):
+    """Static tables mapping relations to per-source-type "slots".
+
+    Returns (slot_rel i32[T, S], rel_slot i32[R], rel_src i32[R] or None): slot_rel[tau] lists the
+    relations whose source type is tau (padded with -1), rel_slot[r] is the position of r in its
+    source type's list, rel_src[r] the source type. A node of type tau is the source of at most S
+    relations (graph_types: S = 4 of R = 11), so the relation transforms of its key and value cost
+    S, not R, D x D products. With other sizes than graph_types' (a generic HGTConv) the source
+    type of a relation is unknown: every relation is a slot of every type (S = R) and
+    rel_src is None.
     """
-    every = jnp.einsum("ni,tio->nto", x, kernel) + bias[None]
-    return jnp.take_along_axis(every, types[:, None, None], axis=1)[:, 0]
+    if (num_node_types, num_relations) != (gt.NUM_NODE_TYPES, gt.NUM_RELATIONS):
+        return (np.tile(np.arange(num_relations, dtype=np.int32), (num_node_types, 1)),
+                np.arange(num_relations, dtype=np.int32), None)
+    rel_src = np.array([src for src, _, _ in gt.RELATION_TRIPLES], np.int32)
+    per_type = [np.nonzero(rel_src == tau)[0] for tau in range(num_node_types)]
+    slot_rel = np.full((num_node_types, max(len(p) for p in per_type)), -1, np.int32)
+    rel_slot = np.zeros(num_relations, np.int32)
+    for tau, rels in enumerate(per_type):
+        slot_rel[tau, :len(rels)] = rels
+        rel_slot[rels] = np.arange(len(rels))
+    return slot_rel, rel_slot, rel_src
+
+
+def _block_size(num_nodes: int) -> int:
+    """Rows per type block: a power of two in [8, 256], about num_nodes / 32 (static).
+
+    Bigger blocks make fewer (larger, more efficient) matmuls and fewer per-block weight copies,
+    but waste up to T x (block - 1) padding rows.
+    """
+    c = 8
+    while c < 256 and 32 * c <= num_nodes:
+        c *= 2
+    return c
+
+
+def _type_blocks(node_type, num_types: int, block: int):
+    """Row layout that groups the nodes by type in blocks of `block` rows of a single type.
+
+    node_type i32[M] in [0, T). Returns pos i32[M] (row of each node), src i32[nb * block] (node
+    of each row, M on padding rows), blk_type i32[nb] (type of each block), nb (static: the
+    capacity M + T (block - 1) rounded up; blocks past the last type are padding).
+    """
+    m = node_type.shape[0]
+    onehot = (node_type[:, None] == jnp.arange(num_types)).astype(jnp.int32)
+    padded = (jnp.sum(onehot, 0) + block - 1) // block * block
+    end = jnp.cumsum(padded)
+    rank = jnp.sum(jnp.cumsum(onehot, 0) * onehot, 1) - 1        # rank among the nodes of its type
+    pos = (end - padded)[node_type] + rank
+    nb = -(-(m + num_types * (block - 1)) // block)
+    src = jnp.full((nb * block,), m, jnp.int32).at[pos].set(
+        jnp.arange(m, dtype=jnp.int32), unique_indices=True)
+    blk_type = jnp.minimum(jnp.sum(jnp.arange(nb)[:, None] * block >= end[None, :], 1), num_types - 1)
+    return pos, src, blk_type, nb
+
+
+def _block_dense(xb, blk_type, kernel, bias):
+    """Per-type affine map on type blocks: xb f32[nb, C, I], kernel [T, I, O] -> f32[nb, C, O]."""
+    return jnp.einsum("bci,bio->bco", xb, kernel[blk_type]) + bias[blk_type][:, None, :]
+
+
+def _slot_kernels(rel_kernel, slot_rel):
+    """[R, H, D, D] relation kernels -> [T, H, D, S * D]: the slots of each source type side by side
+    (zero blocks on padding slots)."""
+    r, h, d, _ = rel_kernel.shape
+    t, s = slot_rel.shape
+    padded = jnp.concatenate([rel_kernel, jnp.zeros((1, h, d, d), rel_kernel.dtype)])
+    w = padded[np.where(slot_rel >= 0, slot_rel, r)]                     # [T, S, H, D, D]
+    return w.transpose(0, 2, 3, 1, 4).reshape(t, h, d, s * d)
+
+
+def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int):
+    """HGTConv on one graph (or a disjoint union of graphs): returns (out f32[N, F], alpha f32[E, H]).
+
+    Layout: nodes are permuted into blocks of a single type (`_type_blocks`), so every per-type
+    linear is a batched matmul with one weight per block instead of all T types on every node,
+    and every node's key / value gets only the S relation transforms of its type (as a source)
+    instead of all R. Edges stay in their order and gather whole rows from those tables.
+    """
+    n, f_in = x.shape
+    t, _, f3 = params["kqv_kernel"].shape
+    f = f3 // 3
+    h, d = heads, f3 // 3 // heads
+    r = params["k_rel"].shape[0]
+    slot_rel, rel_slot, rel_src = _relation_slots(t, r)
+    s = slot_rel.shape[1]
+    c = _block_size(n)
+
+    ntype = jnp.clip(node_type, 0, t - 1)
+    live = live_edges(node_mask, senders, receivers, edge_mask) & (relation >= 0)
+    rel = jnp.clip(relation, 0, r - 1)
+    if rel_src is not None:  # a relation's edges leave nodes of its source type (edge_relations)
+        live = live & (jnp.asarray(rel_src)[rel] == ntype[senders])
+
+    pos, src, blk_type, nb = _type_blocks(ntype, t, c)
+    rows = nb * c
+    # Dead rows are zeroed first, so garbage (even NaN) there reaches no value or gradient.
+    x0 = jnp.where(node_mask[:, None], x, 0.0)
+    xb = jnp.concatenate([x0, jnp.zeros((1, f_in), x0.dtype)])[src].reshape(nb, c, f_in)
+    kqv = _block_dense(xb, blk_type, params["kqv_kernel"], params["kqv_bias"])    # [nb, C, 3F]
+
+    # Relation transforms of every node's key and value for the S relations it is a source of:
+    # per block and head, [C, D] @ [D, S * D]; then one row [k_h..., v_h...] per (node, slot).
+    kv = kqv.reshape(nb, c, 3, h, d)[:, :, (0, 2)]                          # [nb, C, 2, H, D]
+    w = jnp.stack([_slot_kernels(params["k_rel"], slot_rel),
+                   _slot_kernels(params["v_rel"], slot_rel)], 1)[blk_type]  # [nb, 2, H, D, S*D]
+    kvt = jnp.einsum("bcjhd,bjhde->bjhce", kv, w)                            # [nb, 2, H, C, S*D]
+    table = kvt.reshape(nb, 2, h, c, s, d).transpose(0, 3, 4, 1, 2, 5).reshape(rows * s, 2 * f)
+
+    ps, pd = pos[senders], pos[receivers]
+    kv_e = table[ps * s + jnp.asarray(rel_slot)[rel]].reshape(-1, 2, h, d)
+    q_e = kqv.reshape(rows, 3, h, d)[pd, 1]
+    score = jnp.sum(q_e * kv_e[:, 0], axis=-1) * params["p_rel"][rel] / math.sqrt(d)
+    alpha = masked_segment_softmax(score, live, pd, rows)
+    # where() rather than a product with alpha = 0: a non-finite value on a dead row must not leak.
+    msg = jnp.where(live[:, None, None], kv_e[:, 1] * alpha[..., None], 0.0)
+    agg = jax.ops.segment_sum(msg, pd, rows).reshape(nb, c, f)
+    out = _block_dense(jax.nn.gelu(agg, approximate=False), blk_type, params["out_kernel"],
+                       params["out_bias"])
+    if f_in == f:
+        gate = jax.nn.sigmoid(params["skip"][blk_type])[:, None, None]
+        out = gate * out + (1.0 - gate) * xb
+    out = out.reshape(rows, f)[pos]
+    return jnp.where(node_mask[:, None], out, 0.0), alpha
+
+
+@functools.lru_cache(maxsize=None)
+def _hgt_op(heads: int):
+    """`_hgt` on one graph, with a batching rule (jax.custom_batching.custom_vmap) that runs a
+    batch of graphs as ONE disjoint-union graph: the type blocks then span the whole batch, so the
+    per-block matmuls are large and padding is paid once per batch, not per graph."""
+
+    def single(params, x, node_type, node_mask, senders, receivers, relation, edge_mask):
+        return _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mask,
+                    heads=heads)
+
+    op = jax.custom_batching.custom_vmap(single)
+
+    @op.def_vmap
+    def _batched(axis_size, in_batched, params, *graph):
+        params_batched, *graph_batched = in_batched
+        graph = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
+                 for a, b in zip(graph, graph_batched)]
+        if any(jax.tree.leaves(params_batched)):  # e.g. one parameter set per seed: plain vmap
+            params = jax.tree.map(lambda a, b: a if b else jnp.broadcast_to(a, (axis_size,) + a.shape),
+                                  params, params_batched)
+            return jax.vmap(single)(params, *graph), (True, True)
+        x, node_type, node_mask, senders, receivers, relation, edge_mask = graph
+        b, n = node_type.shape
+        e = senders.shape[1]
+        offset = (jnp.arange(b, dtype=senders.dtype) * n)[:, None]
+        out, alpha = _hgt(params, x.reshape(b * n, x.shape[-1]), node_type.reshape(-1),
+                          node_mask.reshape(-1), (senders + offset).reshape(-1),
+                          (receivers + offset).reshape(-1), relation.reshape(-1),
+                          edge_mask.reshape(-1), heads=heads)
+        return (out.reshape(b, n, -1), alpha.reshape(b, e, heads)), (True, True)
+
+    return op
 
 
 class HGTConv(nn.Module):
@@ -145,32 +301,13 @@ class HGTConv(nn.Module):
         out_bias = self.param("out_bias", _bias_uniform(f), (t, f))
         skip = self.param("skip", nn.initializers.ones, (t,))
 
-        ntype = jnp.clip(node_type, 0, t - 1)
-        kqv = _typed_dense(x, ntype, kqv_kernel, kqv_bias)
-        k, q, v = (a.reshape(n, h, d) for a in jnp.split(kqv, 3, axis=-1))
-
-        live = live_edges(node_mask, senders, receivers, edge_mask) & (relation >= 0)
-        rel = jnp.clip(relation, 0, r - 1)
-        # Relation transforms per (node, relation) then gathered per edge: [N, R, H, D] is far
-        # smaller than gathering a [E, H, D, D] weight per edge.
-        k_all = jnp.einsum("nhd,rhde->nrhe", k, k_rel)
-        v_all = jnp.einsum("nhd,rhde->nrhe", v, v_rel)
-        k_e = k_all[senders, rel]
-        v_e = v_all[senders, rel]
-        score = jnp.sum(q[receivers] * k_e, axis=-1) * p_rel[rel] / math.sqrt(d)
-        alpha = masked_segment_softmax(score, live, receivers, n)
+        params = dict(kqv_kernel=kqv_kernel, kqv_bias=kqv_bias, k_rel=k_rel, v_rel=v_rel,
+                      p_rel=p_rel, out_kernel=out_kernel, out_bias=out_bias, skip=skip)
+        out, alpha = _hgt_op(h)(params, x, node_type, node_mask, senders, receivers, relation,
+                                edge_mask)
         if not self.is_initializing():  # keep init's variables free of sown values (batch-agnostic)
             self.sow("attention", "alpha", alpha)
-
-        # where() rather than a product with alpha = 0: a non-finite value on a dead node
-        # (0 * inf = NaN) must not reach a live one.
-        msg = jnp.where(live[:, None, None], v_e * alpha[..., None], 0.0)
-        agg = jax.ops.segment_sum(msg, receivers, n).reshape(n, f)
-        out = _typed_dense(jax.nn.gelu(agg, approximate=False), ntype, out_kernel, out_bias)
-        if f_in == f:
-            gate = jax.nn.sigmoid(skip[ntype])[:, None]
-            out = gate * out + (1.0 - gate) * x
-        return jnp.where(node_mask[:, None], out, 0.0)
+        return out
 
 
 class GCNConv(nn.Module):
