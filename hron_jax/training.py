@@ -335,8 +335,9 @@ def _leaf_name(path) -> str:
     return '.'.join(parts)
 
 
-def _check_metadata(manager, step: int, abstract, path: Path) -> None:
-    """Compare the stored arrays (names, shapes, dtypes) with what this config builds."""
+def _check_metadata(manager, step: int, abstract, path: Path, partial: bool = False) -> None:
+    """Compare the stored arrays (names, shapes, dtypes) with what this config builds (with
+    `partial`, only those in `abstract`, e.g. {'params': ...})."""
     import jax
     try:
         stored = {m.name: m for m in jax.tree.leaves(manager.item_metadata(step))}
@@ -347,6 +348,9 @@ def _check_metadata(manager, step: int, abstract, path: Path) -> None:
             f'{path}: unreadable checkpoint metadata ({type(e).__name__}: {str(e)[:200]}); delete '
             'this step directory to resume from the previous checkpoint, or start a new run') from None
     want = {_leaf_name(p): a for p, a in jax.tree_util.tree_flatten_with_path(abstract)[0]}
+    if partial:
+        roots = {n.split('.')[0] for n in want}
+        stored = {n: m for n, m in stored.items() if n.split('.')[0] in roots}
     problems = []
     for name in sorted(set(want) | set(stored)):
         if name not in stored:
@@ -366,9 +370,8 @@ def _check_metadata(manager, step: int, abstract, path: Path) -> None:
             'or start a new run with another --out')
 
 
-def restore_runner(run_dir: Path, abstract, step: int | None = None):
-    """(RunnerState restored onto `abstract`'s shardings, its step). Raises CheckpointError."""
-    run_dir = Path(run_dir)
+def _checkpoint_step(run_dir: Path, step: int | None):
+    """(manager, step): the latest (or the given) checkpoint step of a run; CheckpointError if none."""
     manager = _manager(run_dir, create=False) if (run_dir / 'checkpoints').is_dir() else None
     steps = manager.all_steps() if manager is not None else []
     if not steps:
@@ -378,18 +381,56 @@ def restore_runner(run_dir: Path, abstract, step: int | None = None):
     if step not in steps:
         raise CheckpointError(f'{run_dir / "checkpoints"}: no checkpoint for step {step}; '
                               f'available: {sorted(steps)}')
+    return manager, step
+
+
+def _restore_error(path: Path, e: Exception) -> CheckpointError:
+    return CheckpointError(
+        f'{path}: cannot restore the checkpoint ({type(e).__name__}: {str(e)[:300]}); delete this '
+        'step directory to resume from the previous checkpoint, or start a new run')
+
+
+def restore_runner(run_dir: Path, abstract, step: int | None = None):
+    """(RunnerState restored onto `abstract`'s shardings, its step). Raises CheckpointError."""
     import orbax.checkpoint as ocp
+    run_dir = Path(run_dir)
+    manager, step = _checkpoint_step(run_dir, step)
     path = run_dir / 'checkpoints' / str(step)
-    _check_metadata(manager, step, abstract, path)
     try:
-        runner = manager.restore(step, args=ocp.args.StandardRestore(abstract))
+        _check_metadata(manager, step, abstract, path)
+        return manager.restore(step, args=ocp.args.StandardRestore(abstract)), step
+    except CheckpointError:
+        raise
     except Exception as e:
-        raise CheckpointError(
-            f'{path}: cannot restore the checkpoint ({type(e).__name__}: {str(e)[:300]}); delete this '
-            'step directory to resume from the previous checkpoint, or start a new run') from None
+        raise _restore_error(path, e) from None
     finally:
         manager.close()
-    return runner, step
+
+
+def restore_params(run_dir, config: TrainConfig, env, network, step: int | None = None):
+    """(params with a leading seed axis [S, ...] as numpy, step) of a run's checkpoint: only the
+    parameters are read, so `env` may be built differently from training (e.g. no auto-reset)."""
+    import jax
+    import orbax.checkpoint as ocp
+    run_dir = Path(run_dir)
+    manager, step = _checkpoint_step(run_dir, step)
+    path = run_dir / 'checkpoints' / str(step)
+    obs = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs
+    one = jax.eval_shape(network.init, jax.random.PRNGKey(0), obs)
+    item = {'params': jax.tree.map(
+        lambda a: jax.ShapeDtypeStruct((config.num_seeds,) + a.shape, a.dtype), one)}
+    try:
+        _check_metadata(manager, step, item, path, partial=True)
+        out = ocp.PyTreeCheckpointer().restore(path / 'default', args=ocp.args.PyTreeRestore(
+            item=item, restore_args=ocp.checkpoint_utils.construct_restore_args(item),
+            partial_restore=True))
+    except CheckpointError:
+        raise
+    except Exception as e:
+        raise _restore_error(path, e) from None
+    finally:
+        manager.close()
+    return out['params'], step
 
 
 def load_config(run_dir: Path) -> TrainConfig:

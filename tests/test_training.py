@@ -1,0 +1,286 @@
+"""train.py / eval.py: exact resume, vmapped seeds, sharded envs, SIGTERM, CLI errors, eval table.
+
+All on CPU with the choice task and a tiny model (PPO itself is tested in test_ppo.py). Compiles
+dominate the time, so there are three programs: in-process single-seed runs (hron_jax.training
+caches the program per program-relevant config, so every such run shares it), train.py
+subprocesses on 2 forced CPU devices with 2 vmapped seeds (they share a persistent XLA cache, so
+only the first one compiles), and eval.py.
+"""
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from hron_jax import evaluation
+from hron_jax import training as T
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY_MODEL = ['hidden=16', 'heads=1', 'gnn_layers=1', 'goal_fc=16,16,16', 'fusion_fc=32,32,32',
+              'head_fc=32,32']
+BATCH = 8 * 2     # num_envs x num_steps
+TINY = dict(task='choice', model='rgbd_sg_attn', num_envs=8, num_steps=2, epochs=2, minibatches=2,
+            lr=1e-3, log_every=2, checkpoint_every=4, model_option=TINY_MODEL)
+
+
+def tiny_config(updates: int, **kw) -> T.TrainConfig:
+    return T.config_from_args(dict(TINY, total_steps=BATCH * updates, **kw))
+
+
+def tiny_argv(updates: int) -> list[str]:
+    argv = ['--task', 'choice', '--num-envs', '8', '--num-steps', '2', '--epochs', '2',
+            '--minibatches', '2', '--lr', '1e-3', '--log-every', '2', '--checkpoint-every', '4',
+            '--total-steps', str(BATCH * updates), '--no-progress']
+    for opt in TINY_MODEL:
+        argv += ['--model-option', opt]
+    return argv
+
+
+def train(config, run_dir, **kw):
+    trainer = T.Trainer(config, run_dir, progress=False, log=lambda s: None, **kw)
+    try:
+        runner = trainer.run()
+    finally:
+        trainer.close()
+    return runner
+
+
+def leaves(tree):
+    return [np.asarray(x) for x in jax.tree.leaves(tree)]
+
+
+def assert_trees_equal(a, b):
+    la, lb = leaves(a), leaves(b)
+    assert len(la) == len(lb)
+    for x, y in zip(la, lb):
+        np.testing.assert_array_equal(x, y)
+
+
+def max_diff(a, b):
+    return max(float(np.max(np.abs(x.astype(np.float64) - y.astype(np.float64))))
+               for x, y in zip(leaves(a), leaves(b)) if x.dtype.kind == 'f')
+
+
+@pytest.fixture(scope='module')
+def xla_cache(tmp_path_factory):
+    return str(tmp_path_factory.mktemp('xla_cache'))
+
+
+def run_cli(script, argv, xla_cache, devices=1, **kw):
+    env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache,
+               PYTHONPATH=str(ROOT))
+    env.pop('XLA_FLAGS', None)
+    if devices > 1:
+        env['XLA_FLAGS'] = f'--xla_force_host_platform_device_count={devices}'
+    return subprocess.run([sys.executable, str(ROOT / script)] + argv, env=env, cwd=ROOT,
+                          capture_output=True, text=True, timeout=240, **kw)
+
+
+@pytest.fixture(scope='module')
+def reference(tmp_path_factory):
+    """An uninterrupted 8-update single-seed run: (config, run dir, final RunnerState)."""
+    config = tiny_config(8)
+    run_dir = tmp_path_factory.mktemp('runs') / 'reference'
+    return config, run_dir, train(config, run_dir)
+
+
+# --- resume ------------------------------------------------------------------------------------
+def test_resume_after_interruption_is_exact(reference, tmp_path):
+    config, ref_dir, ref = reference
+    run_dir = tmp_path / 'run'
+    # Train 6 of 8 updates (chunks of 2, checkpoints at 4 and at exit = 6), then "kill" the
+    # process after update 6 but before its checkpoint landed: drop checkpoint 6.
+    trainer = T.Trainer(config, run_dir, progress=False, log=lambda s: None)
+    trainer.run(max_updates=6)
+    trainer.close()
+    assert sorted(int(p.name) for p in (run_dir / 'checkpoints').iterdir()) == [0, 4, 6]
+    shutil.rmtree(run_dir / 'checkpoints' / '6')
+
+    resumed = train(T.load_config(run_dir), run_dir, resume=True)
+    assert int(resumed.update[0]) == 8
+    assert_trees_equal(resumed.params, ref.params)          # bitwise
+    assert_trees_equal(resumed.opt_state, ref.opt_state)
+    assert_trees_equal(resumed.env_state, ref.env_state)
+    np.testing.assert_array_equal(resumed.rng, ref.rng)
+    # The log was rewound to update 4 and continued: same rows as the uninterrupted run.
+    rows, ref_rows = T.read_metrics(run_dir), T.read_metrics(ref_dir)
+    assert [r['update'] for r in rows] == [2, 4, 6, 8]
+    assert [r['success'] for r in rows] == [r['success'] for r in ref_rows]
+    csv_lines = (run_dir / 'metrics.csv').read_text().strip().splitlines()
+    assert len(csv_lines) == 5 and csv_lines[0].startswith('update,env_steps')
+    assert (run_dir / 'learning_curve.png').stat().st_size > 0
+    assert list((run_dir / 'tb').glob('events.out.tfevents.*'))
+
+
+def test_resume_config_mismatch_and_bad_checkpoint(reference, tmp_path, capsys):
+    _, ref_dir, _ = reference
+    run_dir = tmp_path / 'copy'
+    shutil.copytree(ref_dir, run_dir)
+    rc = T.main(['--resume', str(run_dir), '--lr', '0.5', '--num-envs', '16',
+                 '--compile-cache', 'none'])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and 'ppo.lr' in err and 'ppo.num_envs' in err and 'Traceback' not in err
+    # An existing run is not overwritten without --resume.
+    assert T.main(tiny_argv(8) + ['--out', str(run_dir), '--compile-cache', 'none']) == 2
+    assert 'already holds a run' in capsys.readouterr().err
+    # A checkpoint that does not fit the config (another model size) names the path.
+    cfg = json.loads((run_dir / 'config.json').read_text())
+    cfg['config']['model_options'] = [[k, 32 if k == 'hidden' else v]
+                                      for k, v in cfg['config']['model_options']]
+    (run_dir / 'config.json').write_text(json.dumps(cfg))
+    rc = T.main(['--resume', str(run_dir), '--compile-cache', 'none'])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and str(run_dir / 'checkpoints' / '8') in err and 'does not match' in err
+    # A damaged one too.
+    shutil.rmtree(run_dir)
+    shutil.copytree(ref_dir, run_dir)
+    for f in (run_dir / 'checkpoints' / '8').rglob('*'):
+        if f.is_file() and f.stat().st_size > 1000:
+            f.write_bytes(f.read_bytes()[:100])
+    rc = T.main(['--resume', str(run_dir), '--compile-cache', 'none'])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and str(run_dir / 'checkpoints' / '8') in err and 'delete this step' in err
+    assert len(err.splitlines()) == 1
+
+
+# --- seeds and devices: one sharded, multi-seed train.py run -------------------------------------
+@pytest.fixture(scope='module')
+def sharded_two_seeds(tmp_path_factory, xla_cache):
+    """train.py on 2 forced CPU devices (envs sharded) with seeds 0 and 1 vmapped: its run dir.
+    (One compile covers both checks below; their errors do not add up beyond 1e-6: measured
+    3e-7 for vmapped vs single, 1.5e-7 for sharded vs unsharded.)"""
+    run_dir = tmp_path_factory.mktemp('runs') / 'sharded_two_seeds'
+    r = run_cli('train.py', tiny_argv(8) + ['--num-seeds', '2', '--out', str(run_dir)], xla_cache,
+                devices=2)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return run_dir
+
+
+@pytest.fixture(scope='module')
+def seed1(tmp_path_factory):
+    """Single-seed run with --seed 1 (the `reference` program: no compile)."""
+    return train(tiny_config(8, seed=1), tmp_path_factory.mktemp('runs') / 'seed1')
+
+
+def test_vmapped_seeds_differ_and_match_single_runs(reference, seed1, sharded_two_seeds):
+    _, _, ref = reference
+    config = T.load_config(sharded_two_seeds)
+    assert config.num_seeds == 2 and config.seed == 0
+    two, _ = T.restore_runner(sharded_two_seeds, T.programs(config).abstract)
+    for i, single in enumerate((ref, seed1)):
+        assert max_diff(jax.tree.map(lambda x: x[i:i + 1], two.params), single.params) < 1e-6
+    assert max_diff(jax.tree.map(lambda x: x[:1], two.params),
+                    jax.tree.map(lambda x: x[1:], two.params)) > 1e-3
+    row = T.read_metrics(sharded_two_seeds)[-1]
+    assert row['seeds'] == 2 and len(row['per_seed']['success']) == 2
+    assert row['success'] == pytest.approx(np.mean(row['per_seed']['success']))
+
+
+def test_sharded_run_matches_unsharded(reference, sharded_two_seeds):
+    _, _, ref = reference
+    meta = json.loads((sharded_two_seeds / 'config.json').read_text())['meta']
+    assert len(meta['devices']) == 2
+    config = T.load_config(sharded_two_seeds)
+    runner, step = T.restore_runner(sharded_two_seeds, T.programs(config).abstract)
+    assert step == 8
+    assert max_diff(jax.tree.map(lambda x: x[:1], runner.params), ref.params) < 1e-6
+    # The restore put the env state back onto this process's single device.
+    assert len(jax.tree.leaves(runner.env_state)[0].sharding.device_set) == 1
+
+
+# --- signals -----------------------------------------------------------------------------------
+def test_sigterm_checkpoints_and_resume_continues(tmp_path, xla_cache, sharded_two_seeds):
+    # The program of `sharded_two_seeds` (2 devices, 2 seeds) again: it comes from the XLA cache.
+    updates = 300
+    run_dir = tmp_path / 'sig'
+    argv = tiny_argv(updates) + ['--num-seeds', '2', '--checkpoint-every', '1000']  # ckpt: init, exit
+    env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache,
+               PYTHONPATH=str(ROOT), XLA_FLAGS='--xla_force_host_platform_device_count=2')
+    popen = lambda out: subprocess.Popen(
+        [sys.executable, str(ROOT / 'train.py')] + argv + ['--out', str(out)], env=env, cwd=ROOT,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = popen(run_dir)
+    full = popen(tmp_path / 'uninterrupted')   # the reference, meanwhile
+    deadline = time.time() + 200
+    while time.time() < deadline and proc.poll() is None:
+        if len(T.read_metrics(run_dir)) >= 1:    # training has started
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, proc.communicate()[1][-2000:]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert 'Traceback' not in err and '--resume' in err
+    steps = sorted(int(p.name) for p in (run_dir / 'checkpoints').iterdir())
+    stopped = steps[-1]
+    assert steps[0] == 0 and 0 < stopped < updates and stopped % 2 == 0   # at a chunk boundary
+    assert T.read_metrics(run_dir)[-1]['update'] == stopped
+
+    r = run_cli('train.py', ['--resume', str(run_dir), '--no-progress'], xla_cache, devices=2)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert f'resumed {run_dir} at update {stopped}' in r.stderr
+    rows = T.read_metrics(run_dir)
+    assert [x['update'] for x in rows] == list(range(2, updates + 1, 2))
+    # Bitwise the same final state as the uninterrupted run.
+    assert full.wait(timeout=200) == 0, full.communicate()[1][-2000:]
+    abstract = T.programs(T.load_config(run_dir)).abstract
+    final, step = T.restore_runner(run_dir, abstract)
+    ref, ref_step = T.restore_runner(tmp_path / 'uninterrupted', abstract)
+    assert step == ref_step == updates
+    assert_trees_equal(final, ref)
+
+
+# --- CLI errors --------------------------------------------------------------------------------
+BAD_CLI = [
+    (['--task', 'navigate'], 1, "invalid choice: 'navigate'"),
+    (['--task', 'choice', '--model', 'resnet'], 1, "invalid choice: 'resnet'"),
+    (['--task', 'directed', '--scene', 'scenes/no_such_scene.xml'], 1, 'scene file not found'),
+    (['--task', 'choice', '--num-envs', '7'], 2, 'not divisible by the 2 local devices'),
+    (['--task', 'choice', '--num-envs', '6', '--num-steps', '1', '--minibatches', '4'], 1,
+     'not divisible by num_minibatches'),
+]
+
+
+def test_bad_cli_input_is_one_clear_line(tmp_path, xla_cache):
+    procs = []
+    for i, (argv, devices, _) in enumerate(BAD_CLI):     # all at once: each is mostly imports
+        env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache,
+                   PYTHONPATH=str(ROOT), XLA_FLAGS=f'--xla_force_host_platform_device_count={devices}')
+        procs.append(subprocess.Popen(
+            [sys.executable, str(ROOT / 'train.py')] + argv + ['--out', str(tmp_path / f'never{i}')],
+            env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    for i, ((argv, _, needle), proc) in enumerate(zip(BAD_CLI, procs)):
+        _, err = proc.communicate(timeout=120)
+        err = err.strip()
+        assert proc.returncode == 2, (argv, err)
+        assert needle in err and err.startswith('train.py: error:'), (argv, err)
+        assert len(err.splitlines()) == 1, (argv, err)
+        assert not (tmp_path / f'never{i}').exists()
+
+
+# --- eval ----------------------------------------------------------------------------------------
+def test_eval_writes_table(reference, tmp_path, xla_cache):
+    _, ref_dir, _ = reference
+    out = tmp_path / 'eval'
+    r = run_cli('eval.py', [str(ref_dir), '--episodes', '6', '--out', str(out)], xla_cache)
+    assert r.returncode == 0, r.stderr[-2000:]
+    table = (out / 'eval.md').read_text()
+    assert '| SR ↑ | SPL ↑ |' in table and '| choice | no | SG + TD ATTN | trained (sampled) | 1 x 6 |' in table
+    assert table.splitlines()[2] in r.stdout
+    res = json.loads((out / 'eval.json').read_text())
+    assert res['step'] == 8 and res['summary']['episodes'] == 6
+    sr = np.asarray(res['per_episode']['success'])
+    assert sr.shape == (1, 6) and res['summary']['success']['mean'] == pytest.approx(sr.mean())
+    assert (out / 'trajectories.png').stat().st_size > 0
+    # A reference policy needs no run: the choice oracle is always right (in-process: no imports).
+    rc = evaluation.main(['--policy', 'oracle', '--task', 'choice', '--episodes', '5', '--plots', '0',
+                          '--out', str(tmp_path / 'oracle'), '--compile-cache', 'none'])
+    assert rc == 0
+    assert '1.000 ± 0.000 | 1.000 ± 0.000 |' in (tmp_path / 'oracle' / 'eval.md').read_text()
