@@ -197,14 +197,17 @@ def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mas
                    _slot_kernels(params["v_rel"], slot_rel)], 1)[blk_type]  # [nb, 2, H, D, S*D]
     kvt = jnp.einsum("bcjhd,bjhde->bjhce", kv, w)                            # [nb, 2, H, C, S*D]
     ps, pd = pos[senders], pos[receivers]
-    jh = jnp.arange(2 * h, dtype=ps.dtype)
-    row = ((ps // c)[:, None] * (2 * h) + jh) * c + (ps % c)[:, None]      # [E, 2H] (block, jh, c)
-    kv_e = kvt.reshape(-1, d)[row * s + jnp.asarray(rel_slot)[rel][:, None]].reshape(-1, 2, h, d)
+    # Row of (block, k|v, head, c) in kvt for each edge and head, then its slot's D columns.
+    base = ((ps // c)[:, None] * (2 * h) + jnp.arange(h, dtype=ps.dtype)) * c + (ps % c)[:, None]
+    slot = jnp.asarray(rel_slot)[rel][:, None]
+    table = kvt.reshape(-1, d)
+    k_e = table[base * s + slot]                                            # [E, H, D]
+    v_e = table[(base + h * c) * s + slot]
     q_e = q[pd]
-    score = jnp.sum(q_e * kv_e[:, 0], axis=-1) * params["p_rel"][rel] / math.sqrt(d)
+    score = jnp.sum(q_e * k_e, axis=-1) * params["p_rel"][rel] / math.sqrt(d)
     alpha = masked_segment_softmax(score, live, pd, rows)
     # where() rather than a product with alpha = 0: a non-finite value on a dead row must not leak.
-    msg = jnp.where(live[:, None, None], kv_e[:, 1] * alpha[..., None], 0.0)
+    msg = jnp.where(live[:, None, None], v_e * alpha[..., None], 0.0)
     agg = jax.ops.segment_sum(msg, pd, rows).reshape(nb, c, f)
 
     out = _block_dense(jax.nn.gelu(agg, approximate=False), blk_type, params["out_kernel"],
