@@ -324,6 +324,41 @@ def _manager(run_dir: Path, keep: int = 3, create: bool = True):
         options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=create))
 
 
+# orbax refuses zero-size arrays, and mjx.Data has some (e.g. `act` of a model without
+# actuator activations): they are stored as a 1-element placeholder and rebuilt from the abstract.
+def _is_empty(x) -> bool:
+    return int(np.prod(x.shape)) == 0
+
+
+def _storable(tree):
+    """The tree as saved: zero-size leaves replaced by a 1-element placeholder."""
+    import jax
+    import jax.numpy as jnp
+    return jax.tree.map(lambda x: jnp.zeros((1,), x.dtype) if _is_empty(x) else x, tree)
+
+
+def _storable_abstract(abstract):
+    import jax
+    from jax.sharding import NamedSharding, PartitionSpec as P
+
+    def f(a):
+        if not _is_empty(a):
+            return a
+        sharding = a.sharding
+        if isinstance(sharding, NamedSharding):
+            sharding = NamedSharding(sharding.mesh, P())
+        return jax.ShapeDtypeStruct((1,), a.dtype, sharding=sharding)
+    return jax.tree.map(f, abstract)
+
+
+def _from_storable(abstract, restored):
+    import jax
+    import jax.numpy as jnp
+    return jax.tree.map(
+        lambda a, r: jnp.zeros(a.shape, a.dtype, device=a.sharding) if _is_empty(a) else r,
+        abstract, restored)
+
+
 def _leaf_name(path) -> str:
     """A key path as orbax names checkpoint entries ('env_state.info.steps')."""
     parts = []
@@ -396,9 +431,11 @@ def restore_runner(run_dir: Path, abstract, step: int | None = None):
     run_dir = Path(run_dir)
     manager, step = _checkpoint_step(run_dir, step)
     path = run_dir / 'checkpoints' / str(step)
+    stored = _storable_abstract(abstract)
     try:
-        _check_metadata(manager, step, abstract, path)
-        return manager.restore(step, args=ocp.args.StandardRestore(abstract)), step
+        _check_metadata(manager, step, stored, path)
+        runner = manager.restore(step, args=ocp.args.StandardRestore(stored))
+        return _from_storable(abstract, runner), step
     except CheckpointError:
         raise
     except Exception as e:
@@ -645,7 +682,8 @@ def plot_learning_curves(runs: dict[str, list[dict]], path, title: str = '') -> 
         ax.set_xlabel('environment steps')
         ax.grid(alpha=0.3)
         ax.ticklabel_format(axis='x', style='sci', scilimits=(0, 3))
-    axes[0].legend(fontsize=7, loc='lower right')
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=7, loc='lower right')
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
@@ -713,7 +751,7 @@ class Trainer:
         import orbax.checkpoint as ocp
         if self.update in self.manager.all_steps():
             return
-        self.manager.save(self.update, args=ocp.args.StandardSave(self.runner))
+        self.manager.save(self.update, args=ocp.args.StandardSave(_storable(self.runner)))
         self.manager.wait_until_finished()
 
     def checkpoint(self) -> None:
