@@ -37,6 +37,7 @@ import dataclasses
 from typing import Any, Callable, NamedTuple
 
 import jax
+import jax.custom_batching
 import jax.numpy as jnp
 import optax
 from flax import struct
@@ -161,10 +162,16 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         logits, value = network.apply(params, obs)
         return logits.astype(jnp.float32), jnp.reshape(value, logits.shape[:-1]).astype(jnp.float32)
 
+    # Parameter init runs as a loop, not batched, when train is vmapped over seeds: orthogonal
+    # initialisers call LAPACK QR, and jaxlib's batched CPU QR kernel can deadlock when several run
+    # at once on a small thread pool (seen on 2 cores: jax.vmap(train) hung forever). Init is
+    # cheap, so the loop costs nothing and gives bitwise the same params as a single-seed run.
+    init_params = jax.custom_batching.sequential_vmap(network.init)
+
     def init(rng) -> RunnerState:
         rng, k_params, k_env = jax.random.split(rng, 3)
         env_state = v_reset(jax.random.split(k_env, config.num_envs))
-        params = network.init(k_params, env_state.obs)
+        params = init_params(k_params, env_state.obs)
         return RunnerState(params=params, opt_state=tx.init(params), env_state=env_state, rng=rng,
                            update=jnp.zeros((), jnp.int32))
 

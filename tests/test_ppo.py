@@ -35,9 +35,11 @@ class TinyGraphNet(nn.Module):
             mask = n['mask'][:, None]
             return jnp.concatenate([(h * mask).sum(0) / jnp.maximum(mask.sum(), 1), obs['goal']])
 
-        z = nn.relu(nn.Dense(64)(jax.vmap(embed)(obs)))
-        logits = nn.Dense(self.num_actions)(nn.relu(nn.Dense(64)(z)))
-        value = nn.Dense(1)(nn.relu(nn.Dense(64)(z)))
+        # Orthogonal init (LAPACK QR) on purpose: vmapped over seeds it once deadlocked jaxlib.
+        orth = nn.initializers.orthogonal(np.sqrt(2.0))
+        z = nn.relu(nn.Dense(64, kernel_init=orth)(jax.vmap(embed)(obs)))
+        logits = nn.Dense(self.num_actions)(nn.relu(nn.Dense(64, kernel_init=orth)(z)))
+        value = nn.Dense(1)(nn.relu(nn.Dense(64, kernel_init=orth)(z)))
         return logits, value
 
 
