@@ -5,9 +5,11 @@
                                    -> value head  (3 FC) -> value  f32[]
 
 Batching: `ActorCritic.__call__` accepts one observation or a batch. When obs['goal'] has
-leading batch axes ([B, G], or [T, B, G], ...) the single-observation network is mapped over them
-with `nn.vmap` (parameters shared), giving logits f32[B, A] and value f32[B] (or [T, B, A], [T, B]). Parameters are identical in both
-modes (both live under 'core'), so init on one observation and apply on a batch, or vice versa.
+leading batch axes ([B, G], or [T, B, G], ...) they are flattened into one and the network runs on
+the whole batch at once (every module takes a leading batch axis; the GNN layers then process the
+batch as one disjoint-union graph, much cheaper than one graph at a time), giving logits
+f32[B, A] and value f32[B] (or [T, B, A], [T, B]). Parameters are identical in both modes (both
+live under 'core'), so init on one observation and apply on a batch, or vice versa.
 
 Attention readout: HGT attention per layer/head/edge and the pooling weights are sown into the
 'attention' collection. Training calls `apply(variables, obs)` and pays nothing for it; analysis
@@ -40,7 +42,7 @@ def _rgbd(obs):
 
 
 class _ActorCriticCore(nn.Module):
-    """The network on ONE observation (no batch axis). See module docstring."""
+    """The network on ONE observation or on a batch with ONE leading axis. See module docstring."""
 
     num_actions: int
     num_classes: int
@@ -70,9 +72,9 @@ class _ActorCriticCore(nn.Module):
             goal = obs["goal"]
         else:
             # Yang et al.: the goal is the word vector of the target object category (0 if absent).
-            target = obs["goal_classes"][0]
+            target = obs["goal_classes"][..., 0]
             table = jnp.asarray(word_vectors)
-            goal = jnp.where(target >= 0, table[jnp.clip(target, 0, table.shape[0] - 1)], 0.0)
+            goal = jnp.where(target[..., None] >= 0, table[jnp.clip(target, 0, table.shape[0] - 1)], 0.0)
         feats.append(MLP(cfg.goal_fc, name="goal_encoder")(goal.astype(jnp.float32)))
 
         z = MLP(cfg.fusion_fc, name="fusion")(jnp.concatenate(feats, axis=-1))
@@ -81,7 +83,7 @@ class _ActorCriticCore(nn.Module):
                           name="policy_out")(logits)
         value = MLP(cfg.head_fc, name="value_hidden")(z)
         value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0), name="value_out")(value)
-        return logits, value[0]
+        return logits, value[..., 0]
 
 
 class ActorCritic(nn.Module):
@@ -102,13 +104,11 @@ class ActorCritic(nn.Module):
         lead = jnp.shape(obs["goal"])[:-1]
         if not lead:
             return _ActorCriticCore(self.num_actions, self.num_classes, self.config, name="core")(obs)
-        # Any number of leading batch axes ([B], [T, B], ...): flatten them into one, map the
-        # single-observation network over it (parameters shared), restore them on the outputs.
+        # Any number of leading batch axes ([B], [T, B], ...): flatten them into one, run the
+        # network on the whole batch, restore them on the outputs.
         flat = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + jnp.shape(a)[len(lead):]), obs)
-        core = nn.vmap(_ActorCriticCore, in_axes=0, out_axes=0,
-                       variable_axes={"params": None, "attention": 0, "intermediates": 0},
-                       split_rngs={"params": False})
-        logits, value = core(self.num_actions, self.num_classes, self.config, name="core")(flat)
+        logits, value = _ActorCriticCore(self.num_actions, self.num_classes, self.config,
+                                         name="core")(flat)
         return logits.reshape(lead + logits.shape[1:]), value.reshape(lead)
 
 

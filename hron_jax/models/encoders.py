@@ -1,6 +1,7 @@
 """Encoders of the observation branches: MLP, conv image encoder, node featurisers, scene graph.
 
-All modules take ONE observation (no batch axis); `ActorCritic` vmaps them over a batch.
+All modules take ONE observation or a batch of them (leading [B] axis on every input);
+`ActorCritic` passes whole batches, so the GNN layers see the batch (see gnn.HGTConv).
 
 - `MLP`: Dense + ReLU per width.                                f32[I] -> f32[widths[-1]]
 - `ConvEncoder`: 3 conv (SAME padding, ReLU), flatten, 3 FC.     f32[H, W, C] -> f32[fc[-1]]
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import jax
 import jax.numpy as jnp
 import flax.linen as nn
 import numpy as np
@@ -43,7 +45,7 @@ class MLP(nn.Module):
 
 
 class ConvEncoder(nn.Module):
-    """3 conv layers (ReLU), flatten, 3 FC layers (ReLU). f32[H, W, C] -> f32[fc[-1]].
+    """3 conv layers (ReLU), flatten, 3 FC layers (ReLU). f32[(B,) H, W, C] -> f32[(B,) fc[-1]].
 
     SAME padding keeps the encoder valid for any image size (small CPU images included); the
     flatten size follows from the static image shape.
@@ -56,10 +58,11 @@ class ConvEncoder(nn.Module):
 
     @nn.compact
     def __call__(self, img):
-        x = img[None]  # flax Conv wants a batch axis; ActorCritic vmaps over the real one.
+        x = img if img.ndim == 4 else img[None]  # flax Conv wants a batch axis
         for f, k, s in zip(self.features, self.kernels, self.strides):
             x = nn.relu(nn.Conv(f, (k, k), strides=(s, s), padding="SAME", kernel_init=RELU_INIT)(x))
-        return MLP(self.fc)(x.reshape(-1))
+        out = MLP(self.fc)(x.reshape(x.shape[0], -1))
+        return out if img.ndim == 4 else out[0]
 
 
 def _node_arrays(graph):
@@ -71,8 +74,9 @@ def _node_arrays(graph):
 class NodeFeaturizer(nn.Module):
     """Learned node features: Embed(category) + Embed(node_type) + Dense([pos, size]).
 
-    Input: graph nodes (category i32[N], node_type i32[N], pos f32[N,3], size f32[N,3], mask).
-    Output: f32[N, features], zero on dead nodes. Out-of-range ids (padding garbage) are clipped.
+    Input: graph nodes (category i32[N], node_type i32[N], pos f32[N,3], size f32[N,3], mask), or
+    a batch of them ([B, N], ...). Output: f32[(B,) N, features], zero on dead nodes. Out-of-range
+    ids (padding garbage) are clipped.
     """
 
     num_classes: int
@@ -84,20 +88,20 @@ class NodeFeaturizer(nn.Module):
         nt = jnp.clip(node_type, 0, gt.NUM_NODE_TYPES - 1)
         # Zero the geometry of dead rows before the Dense: garbage there (even NaN) would
         # otherwise poison the kernel's gradient (0 * NaN) although the output is masked.
-        geom = jnp.where(mask[:, None], jnp.concatenate([pos, size], -1), 0.0)
+        geom = jnp.where(mask[..., None], jnp.concatenate([pos, size], -1), 0.0)
         h = (nn.Embed(self.num_classes, self.features, name="category_embed")(cat)
              + nn.Embed(gt.NUM_NODE_TYPES, self.features, name="type_embed")(nt)
              + nn.Dense(self.features, name="geometry")(geom))
-        return jnp.where(mask[:, None], h, 0.0)
+        return jnp.where(mask[..., None], h, 0.0)
 
 
 class WordVectorNodeFeaturizer(nn.Module):
     """Yang et al. node features: Dense([word_vector(category), image_code]).
 
     word_vectors: f32[num_classes, W] constant table (not trained), see word_vectors.py.
-    image_code: optional f32[K] (a softmax code of the current image), broadcast to every node,
-    standing in for Yang et al.'s ResNet-50 softmax of the current frame.
-    Output: f32[N, features], zero on dead nodes.
+    image_code: optional f32[(B,) K] (a softmax code of the current image), broadcast to every
+    node, standing in for Yang et al.'s ResNet-50 softmax of the current frame.
+    category, mask: [(B,) N]. Output: f32[(B,) N, features], zero on dead nodes.
     """
 
     features: int
@@ -107,9 +111,10 @@ class WordVectorNodeFeaturizer(nn.Module):
         table = jnp.asarray(word_vectors)
         wv = table[jnp.clip(category, 0, table.shape[0] - 1)]
         if image_code is not None:
-            wv = jnp.concatenate([wv, jnp.broadcast_to(image_code, (wv.shape[0],) + image_code.shape)], -1)
+            code = jnp.broadcast_to(image_code[..., None, :], wv.shape[:-1] + image_code.shape[-1:])
+            wv = jnp.concatenate([wv, code], -1)
         h = nn.Dense(self.features)(wv)
-        return jnp.where(mask[:, None], h, 0.0)
+        return jnp.where(mask[..., None], h, 0.0)
 
 
 class SceneGraphEncoder(nn.Module):
@@ -117,9 +122,10 @@ class SceneGraphEncoder(nn.Module):
 
     Inputs: graph (jraph.GraphsTuple of one padded graph, nodes/edges dicts as in the observation
     contract), goal_classes i32[K] (used by task pooling), image_embedding f32[I] or None (used by
-    the word-vector featuriser only), word_vectors (the Yang table, only for that featuriser).
-    Output: f32[hidden + pool_flag]. Sows ('attention', 'pool_weights') f32[N] and, per HGT layer,
-    ('attention', 'alpha') f32[E, heads].
+    the word-vector featuriser only), word_vectors (the Yang table, only for that featuriser); or
+    all of them with a leading batch axis [B] (the GNN layers then run the whole batch at once).
+    Output: f32[(B,) hidden + pool_flag]. Sows ('attention', 'pool_weights') f32[(B,) N] and, per
+    HGT layer, ('attention', 'alpha') f32[(B,) E, heads].
     """
 
     config: ModelConfig
@@ -153,14 +159,15 @@ class SceneGraphEncoder(nn.Module):
                 h = GCNConv(cfg.hidden, name=f"gcn_{i}")(h, mask, senders, receivers, edge_mask)
             h = nn.relu(h)
 
+        pool = (lambda f: jax.vmap(f)) if mask.ndim == 2 else (lambda f: f)  # noqa: E731
         if cfg.pooling == "task":
             if goal_classes is None:
                 raise ValueError("task-driven pooling needs obs['goal_classes']")
-            pooled, w, selected = pooling.task_driven_pool(h, category, mask, goal_classes)
+            pooled, w, selected = pool(pooling.task_driven_pool)(h, category, mask, goal_classes)
         else:
-            pooled, w, selected = pooling.mean_pool(h, mask)
+            pooled, w, selected = pool(pooling.mean_pool)(h, mask)
         if not self.is_initializing():  # init returns params only (see HGTConv)
             self.sow("attention", "pool_weights", w)
         if cfg.pool_flag:
-            pooled = jnp.concatenate([pooled, selected.astype(pooled.dtype)[None]])
+            pooled = jnp.concatenate([pooled, selected.astype(pooled.dtype)[..., None]], -1)
         return pooled

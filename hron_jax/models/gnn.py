@@ -1,6 +1,8 @@
 """Graph layers on jraph-style padded graphs: HGT (heterogeneous graph transformer) and GCN.
 
-Both layers work on ONE padded graph stored as flat tables (batch them with `jax.vmap`):
+Both layers work on ONE padded graph stored as flat tables, or on a batch of such graphs with a
+leading [B] axis on every table (the fast path for HGTConv, which runs the batch as one
+disjoint-union graph; calling the single-graph form under `jax.vmap` also works):
 
     x          f32[N, F_in]   node features (one table for every node type)
     node_type  i32[N]         0 room, 1 furniture, 2 object (see hron_jax.graph_types)
@@ -50,11 +52,13 @@ def live_edges(node_mask, senders, receivers, edge_mask):
 
 
 def edge_relations(node_type, senders, receivers, edge_type):
-    """i32[E]: HGT relation-triple index of every edge (graph_types.RELATION_INDEX), -1 if illegal.
+    """i32[(B,) E]: HGT relation-triple index of every edge (graph_types.RELATION_INDEX), -1 if illegal.
 
     Out-of-range types (garbage on padded rows) are clipped before the lookup; such edges are dead
     anyway, and the -1 of an illegal live combination makes the HGT drop that edge.
     """
+    if jnp.ndim(node_type) == 2:  # a batch of graphs: node_type [B, N], the rest [B, E]
+        return jax.vmap(edge_relations)(node_type, senders, receivers, edge_type)
     table = jnp.asarray(gt.RELATION_INDEX)
     et = jnp.clip(edge_type, 0, gt.NUM_EDGE_TYPES - 1)
     st = jnp.clip(node_type[senders], 0, gt.NUM_NODE_TYPES - 1)
@@ -219,38 +223,63 @@ def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mas
     return jnp.where(node_mask[:, None], out, 0.0), alpha
 
 
-@functools.lru_cache(maxsize=None)
-def _hgt_op(heads: int):
-    """`_hgt` on one graph, with a batching rule (jax.custom_batching.custom_vmap) that runs a
-    batch of graphs as ONE disjoint-union graph: the type blocks then span the whole batch, so the
-    per-block matmuls are large and padding is paid once per batch, not per graph."""
+def _hgt_single(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *,
+                heads: int):
+    """HGTConv on ONE graph without any permutation: (out f32[N, F], alpha f32[E, H]).
 
-    def single(params, x, node_type, node_mask, senders, receivers, relation, edge_mask):
-        return _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mask,
-                    heads=heads)
+    Every per-type linear runs all T types on every node and selects (an input-side one-hot: one
+    [N, T F_in] @ [T F_in, O] matmul), and keys / values get all R relation transforms. That is
+    T x and R / S x the work of `_hgt`, but it has no per-block weight copies, so it stays cheap
+    when someone else vmaps it over graphs (the weights are then shared, not copied per graph).
+    Used for unbatched calls; identical results to `_hgt`.
+    """
+    n, f_in = x.shape
+    t, _, f3 = params["kqv_kernel"].shape
+    f = f3 // 3
+    h, d = heads, f // heads
+    r = params["k_rel"].shape[0]
+    _, _, rel_src = _relation_slots(t, r)
 
-    op = jax.custom_batching.custom_vmap(single)
+    ntype = jnp.clip(node_type, 0, t - 1)
+    live = live_edges(node_mask, senders, receivers, edge_mask) & (relation >= 0)
+    rel = jnp.clip(relation, 0, r - 1)
+    if rel_src is not None:
+        live = live & (jnp.asarray(rel_src)[rel] == ntype[senders])
+    onehot = jax.nn.one_hot(ntype, t, dtype=x.dtype)
 
-    @op.def_vmap
-    def _batched(axis_size, in_batched, params, *graph):
-        params_batched, *graph_batched = in_batched
-        graph = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
-                 for a, b in zip(graph, graph_batched)]
-        if any(jax.tree.leaves(params_batched)):  # e.g. one parameter set per seed: plain vmap
-            params = jax.tree.map(lambda a, b: a if b else jnp.broadcast_to(a, (axis_size,) + a.shape),
-                                  params, params_batched)
-            return jax.vmap(single)(params, *graph), (True, True)
-        x, node_type, node_mask, senders, receivers, relation, edge_mask = graph
-        b, n = node_type.shape
-        e = senders.shape[1]
-        offset = (jnp.arange(b, dtype=senders.dtype) * n)[:, None]
-        out, alpha = _hgt(params, x.reshape(b * n, x.shape[-1]), node_type.reshape(-1),
-                          node_mask.reshape(-1), (senders + offset).reshape(-1),
-                          (receivers + offset).reshape(-1), relation.reshape(-1),
-                          edge_mask.reshape(-1), heads=heads)
-        return (out.reshape(b, n, -1), alpha.reshape(b, e, heads)), (True, True)
+    def typed(a, kernel, bias):  # [N, I] -> [N, O], kernel [T, I, O]
+        mixed = (onehot[:, :, None] * a[:, None, :]).reshape(n, -1)
+        return mixed @ kernel.reshape(-1, kernel.shape[-1]) + onehot @ bias
 
-    return op
+    x0 = jnp.where(node_mask[:, None], x, 0.0)
+    kqv = typed(x0, params["kqv_kernel"], params["kqv_bias"])
+    k, q, v = (kqv[:, i * f:(i + 1) * f].reshape(n, h, d) for i in range(3))
+    k_all = jnp.einsum("nhd,rhde->nrhe", k, params["k_rel"]).reshape(n * r, h, d)
+    v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
+    row = senders * r + rel
+    score = jnp.sum(q[receivers] * k_all[row], axis=-1) * params["p_rel"][rel] / math.sqrt(d)
+    alpha = masked_segment_softmax(score, live, receivers, n)
+    msg = jnp.where(live[:, None, None], v_all[row] * alpha[..., None], 0.0)
+    agg = jax.ops.segment_sum(msg, receivers, n).reshape(n, f)
+    out = typed(jax.nn.gelu(agg, approximate=False), params["out_kernel"], params["out_bias"])
+    if f_in == f:
+        gate = jax.nn.sigmoid(onehot @ params["skip"])[:, None]
+        out = gate * out + (1.0 - gate) * x0
+    return jnp.where(node_mask[:, None], out, 0.0), alpha
+
+
+def _hgt_batch(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *,
+               heads: int):
+    """`_hgt` on a batch of graphs [B, N, ...] / [B, E] run as ONE disjoint-union graph, so the type
+    blocks span the batch (large matmuls, padding paid once per batch, not per graph)."""
+    b, n = node_type.shape
+    e = senders.shape[-1]
+    offset = (jnp.arange(b, dtype=senders.dtype) * n)[:, None]
+    out, alpha = _hgt(params, x.reshape(b * n, x.shape[-1]), node_type.reshape(-1),
+                      node_mask.reshape(-1), (senders + offset).reshape(-1),
+                      (receivers + offset).reshape(-1), relation.reshape(-1),
+                      edge_mask.reshape(-1), heads=heads)
+    return out.reshape(b, n, -1), alpha.reshape(b, e, heads)
 
 
 class HGTConv(nn.Module):
@@ -269,9 +298,11 @@ class HGTConv(nn.Module):
                     else a                                  (PyG skips the residual then too)
     Dead nodes output 0.
 
-    Inputs: x f32[N, F_in], node_type i32[N], node_mask bool[N], senders/receivers i32[E],
-        relation i32[E] (`edge_relations`, -1 = no relation), edge_mask bool[E].
-    Output: f32[N, features]. Sows the attention alpha f32[E, H] (0 on dead edges) as
+    Inputs: one graph, x f32[N, F_in], node_type i32[N], node_mask bool[N], senders/receivers
+        i32[E], relation i32[E] (`edge_relations`, -1 = no relation), edge_mask bool[E]; or a
+        batch of graphs with a leading axis on every input (x f32[B, N, F_in], ..., senders
+        i32[B, E]), which runs as one disjoint-union graph (fast path, see Cost).
+    Output: f32[(B,) N, features]. Sows the attention alpha f32[(B,) E, H] (0 on dead edges) as
     ('attention', 'alpha'), collected only when the caller makes 'attention' mutable (and never
     during init, so `init` returns parameters only, valid for single and batched apply).
 
@@ -286,9 +317,11 @@ class HGTConv(nn.Module):
     Cost (see `_hgt`): the nodes are permuted into blocks of a single type, so each per-type
     linear is one batched matmul (1 x, not T x: no type is applied to a node of another type),
     and each node's key and value get only the S relation transforms of its type as a source
-    (S = 4 of R = 11). A batch of graphs (jax.vmap, flax nn.vmap) runs as one disjoint-union
-    graph through a custom_vmap batching rule, so the blocks span the batch. For 64 house graphs
-    (71 nodes, 194 edges), hidden 128, 2 heads that is 0.70 GMAC of matmul per layer forward
+    (S = 4 of R = 11). That is the batched path: the graphs of the batch form one disjoint union,
+    so the blocks span the batch and the per-block weight copies are amortised. A single graph
+    takes `_hgt_single` (every type and relation on every node, no permutation), which stays
+    efficient when the caller jax.vmaps it; the ActorCritic passes whole batches. For 64 house
+    graphs (71 nodes, 194 edges), hidden 128, 2 heads that is 0.70 GMAC of matmul per layer forward
     (block padding included) instead of 1.71 GMAC for every type and relation on every node (PyG,
     grouping by type, does about the same as here). Timings: `python -m hron_jax.bench model`.
     """
@@ -300,7 +333,9 @@ class HGTConv(nn.Module):
 
     @nn.compact
     def __call__(self, x, node_type, node_mask, senders, receivers, relation, edge_mask):
-        n, f_in = x.shape
+        if x.ndim not in (2, 3):
+            raise ValueError(f"x must be [N, F] or [B, N, F], got shape {x.shape}")
+        f_in = x.shape[-1]
         f, h = self.features, self.heads
         if f % h:
             raise ValueError(f"features ({f}) must be divisible by heads ({h})")
@@ -318,8 +353,9 @@ class HGTConv(nn.Module):
 
         params = dict(kqv_kernel=kqv_kernel, kqv_bias=kqv_bias, k_rel=k_rel, v_rel=v_rel,
                       p_rel=p_rel, out_kernel=out_kernel, out_bias=out_bias, skip=skip)
-        out, alpha = _hgt_op(h)(params, x, node_type, node_mask, senders, receivers, relation,
-                                edge_mask)
+        run = _hgt_batch if x.ndim == 3 else _hgt_single
+        out, alpha = run(params, x, node_type, node_mask, senders, receivers, relation, edge_mask,
+                         heads=h)
         if not self.is_initializing():  # keep init's variables free of sown values (batch-agnostic)
             self.sow("attention", "alpha", alpha)
         return out
@@ -335,28 +371,36 @@ class GCNConv(nn.Module):
     replaced by it, so live self-loop edges are dropped from A), and D the in-degree of A + I
     (the receiver side, PyG's source_to_target flow). Dead nodes output 0.
 
-    Inputs: x f32[N, F_in], node_mask bool[N], senders/receivers i32[E], edge_mask bool[E].
-    Output: f32[N, features]. Parameters: kernel [F_in, features] (glorot), bias [features] (0).
+    Inputs: x f32[N, F_in], node_mask bool[N], senders/receivers i32[E], edge_mask bool[E], or a
+    batch with a leading axis on each. Output: f32[(B,) N, features]. Parameters: kernel
+    [F_in, features] (glorot), bias [features] (0).
     """
 
     features: int
 
     @nn.compact
     def __call__(self, x, node_mask, senders, receivers, edge_mask):
-        n = x.shape[0]
         kernel = self.param("kernel", nn.initializers.glorot_uniform(), (x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
-        hx = x @ kernel
+        if x.ndim == 3:  # a batch of graphs: [B, N, F_in], [B, N], [B, E] ...
+            return jax.vmap(_gcn, in_axes=(None, None, 0, 0, 0, 0, 0))(
+                kernel, bias, x, node_mask, senders, receivers, edge_mask)
+        return _gcn(kernel, bias, x, node_mask, senders, receivers, edge_mask)
 
-        live = live_edges(node_mask, senders, receivers, edge_mask) & (senders != receivers)
-        w = live.astype(hx.dtype)
-        loop = node_mask.astype(hx.dtype)
-        deg = jax.ops.segment_sum(w, receivers, n) + loop
-        # deg is 0 only for dead nodes; guard the rsqrt so neither value nor gradient is inf.
-        dis = jnp.where(deg > 0, jax.lax.rsqrt(jnp.where(deg > 0, deg, 1.0)), 0.0)
-        norm = dis[senders] * w * dis[receivers]
-        msg = jnp.where(live[:, None], norm[:, None] * hx[senders], 0.0)  # no 0 * inf leaks
-        out = jax.ops.segment_sum(msg, receivers, n)
-        out = out + (dis * dis * loop)[:, None] * hx
-        out = out + bias
-        return jnp.where(node_mask[:, None], out, 0.0)
+
+def _gcn(kernel, bias, x, node_mask, senders, receivers, edge_mask):
+    """GCNConv on one graph (see the class)."""
+    n = x.shape[0]
+    hx = x @ kernel
+    live = live_edges(node_mask, senders, receivers, edge_mask) & (senders != receivers)
+    w = live.astype(hx.dtype)
+    loop = node_mask.astype(hx.dtype)
+    deg = jax.ops.segment_sum(w, receivers, n) + loop
+    # deg is 0 only for dead nodes; guard the rsqrt so neither value nor gradient is inf.
+    dis = jnp.where(deg > 0, jax.lax.rsqrt(jnp.where(deg > 0, deg, 1.0)), 0.0)
+    norm = dis[senders] * w * dis[receivers]
+    msg = jnp.where(live[:, None], norm[:, None] * hx[senders], 0.0)  # no 0 * inf leaks
+    out = jax.ops.segment_sum(msg, receivers, n)
+    out = out + (dis * dis * loop)[:, None] * hx
+    out = out + bias
+    return jnp.where(node_mask[:, None], out, 0.0)
