@@ -416,13 +416,20 @@ def model_inputs(batch: int = 64, scene_path: str = _DEFAULT_SCENE, image: int =
 def bench_model(variants=("rgbd", "rgbd_mm", "rgbd_sg", "rgbd_sg_attn", "gcn", "yang"),
                 batch: int = 64, reps: int = 20, scene_path: str = _DEFAULT_SCENE, seed: int = 0,
                 log=print) -> list[dict]:
-    """Rows {variant, fwd_ms, grad_ms, compile_s} at `batch` (default model sizes).
+    """Rows {variant, fwd_ms, grad_ms, fwd_cpu_ms, grad_cpu_ms, compile_s} at `batch`.
 
     fwd = jit(model.apply); grad = jit(value_and_grad) of a PPO-like scalar (log-prob of action 0
     + squared value) w.r.t. all parameters. Parameters are scaled normals (timing does not depend
     on them; flax init would cost ~10 s of compile per variant). The variants are timed round
     robin, one call each per round, and the median over `reps` rounds is reported, so a load change
-    on a shared machine hits every variant alike.
+    on a shared machine hits every variant alike; *_cpu_ms is the process CPU time per call (all
+    threads), steadier than wall time when other jobs share the cores.
+
+    Allocator: XLA:CPU takes each call's temporaries from malloc, and glibc returns large blocks
+    to the OS, so every call page-faults its whole working set again (measured ~0.45 ms per MB on
+    the 2-core VM: 30-50 % of rgbd_sg_attn's gradient time). Running with MALLOC_ARENA_MAX=1
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=17179869184 in the environment keeps the memory and
+    removes that cost (it must be set before the process starts).
     """
     import jax
     import jax.numpy as jnp
@@ -450,27 +457,29 @@ def bench_model(variants=("rgbd", "rgbd_mm", "rgbd_sg", "rgbd_sg_attn", "gcn", "
         jax.block_until_ready(fwd(variables, obs))
         jax.block_until_ready(grad(variables, obs))
         fns[name] = (fwd, grad, variables, time.perf_counter() - t)
-    times = {name: ([], []) for name in variants}
+    times = {name: ([], [], [], []) for name in variants}
     for _ in range(reps):
         for name, (fwd, grad, v, _) in fns.items():
-            for f, acc in zip((fwd, grad), times[name]):
-                t = time.perf_counter()
+            for i, f in enumerate((fwd, grad)):
+                c, t = time.process_time(), time.perf_counter()
                 jax.block_until_ready(f(v, obs))
-                acc.append(time.perf_counter() - t)
-    return [dict(variant=name, fwd_ms=1e3 * float(np.median(times[name][0])),
-                 grad_ms=1e3 * float(np.median(times[name][1])), compile_s=fns[name][3])
-            for name in variants]
+                times[name][i].append(time.perf_counter() - t)
+                times[name][2 + i].append(time.process_time() - c)
+    med = lambda name, i: 1e3 * float(np.median(times[name][i]))  # noqa: E731
+    return [dict(variant=name, fwd_ms=med(name, 0), grad_ms=med(name, 1), fwd_cpu_ms=med(name, 2),
+                 grad_cpu_ms=med(name, 3), compile_s=fns[name][3]) for name in variants]
 
 
 def format_model_rows(rows: list[dict], batch: int) -> str:
     ref = {r["variant"]: r for r in rows}.get("gcn")
-    lines = [f"| variant | forward ms (B={batch}) | fwd+grad ms (B={batch}) | fwd / gcn | grad / gcn | compile s |",
-             "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines = [f"| variant | forward ms (B={batch}) | fwd+grad ms (B={batch}) | fwd / gcn | grad / gcn "
+             "| fwd CPU-ms | fwd+grad CPU-ms | compile s |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         rel = (f"{r['fwd_ms'] / ref['fwd_ms']:.2f} | {r['grad_ms'] / ref['grad_ms']:.2f}" if ref
                else "- | -")
         lines.append(f"| {r['variant']} | {r['fwd_ms']:.1f} | {r['grad_ms']:.1f} | {rel} | "
-                     f"{r['compile_s']:.1f} |")
+                     f"{r['fwd_cpu_ms']:.0f} | {r['grad_cpu_ms']:.0f} | {r['compile_s']:.1f} |")
     return "\n".join(lines)
 
 
