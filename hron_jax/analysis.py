@@ -77,7 +77,7 @@ def load_run(run_dir, step: int | None = None, seed_index: int = 0) -> Run:
     import jax
     from hron_jax import training as T
 
-    run_dir = Path(run_dir)
+    run_dir = Path(run_dir).resolve()   # orbax restores from absolute paths only
     config = T.load_config(run_dir)
     nav = config.task != 'choice'
     env = T.build_env(config, **({'auto_reset': False} if nav else {}))

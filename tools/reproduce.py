@@ -1,0 +1,493 @@
+"""Reproduce the paper's Tables I-III: train + evaluate the experiment grid, write docs/reproduction.md.
+
+    python tools/reproduce.py --plan                       # print the grid, commands, estimated cost
+    python tools/reproduce.py --tables 1                   # train + eval what is missing, then report
+    python tools/reproduce.py --from-runs                  # report only, from existing run dirs
+    python tools/reproduce.py --probe directed_rgbd_sg_attn  # short run to measure env steps/s
+
+Grid (the paper's "Baselines and ablation studies" and Tables I-III): a cell is task x model x
+distractors x premap; every cell is trained for `--seeds` seeds (paper: 3) and each seed's final
+checkpoint is evaluated on `--episodes` episodes (paper: 20; the same episode starts / goals for
+every seed and model, eval.py's protocol).
+
+Runs: RUNS/<cell>/s<seed> is a plain train.py run dir (config.json, checkpoints, metrics.jsonl)
+with eval.py's output in eval_trained/ and this tool's sidecar repro.json (commands, process wall
+times, machine). Seeds are separate train.py processes rather than one --num-seeds run: on the
+2-core CPU a vmapped 3-seed program was slower per seed than three single-seed programs (the
+persistent XLA cache makes seeds 1 and 2 skip compilation), and a single-seed run is by
+construction identical to seed i of a multi-seed one (hron_jax.training). --from-runs reads any
+run dir layout it finds under RUNS/<cell>/ (a multi-seed run counts with all its seeds).
+
+Profiles: 'paper' = the task defaults of hron_jax.training (paper model: HGT hidden 128, 2 heads,
+3 layers; choice 200 k env steps, navigation 1.5 M); 'cpu' = what fits the development machine
+(Table I only: HGT hidden 32, 20 480 env steps per seed). The report states the profile of every
+row. Numbers are only ever read from run dirs: a cell without runs is listed as not run, with its
+commands and a cost estimate from measured env steps/s (its own runs, else a --probe run).
+
+Report statistics: SR / SPL = mean over all episodes of all seeds, +- std over seeds of the
+per-seed means (our reading of the paper's "averaged over 20 episodes across three random seeds").
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import re
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+# ------------------------------------------------------------------------------------------------
+# The grid, with the paper's numbers (hron_paper.tex Tables I-III; SR / SPL mean +- std)
+# ------------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    table: int
+    task: str
+    model: str
+    distractors: bool = False
+    premap: bool = False
+    paper_sr: tuple | None = None
+    paper_spl: tuple | None = None
+
+    @property
+    def name(self) -> str:
+        return '_'.join([self.task, self.model] + (['dist'] if self.distractors else [])
+                        + (['pm'] if self.premap else []))
+
+    @property
+    def label(self) -> str:
+        names = {'rgbd': 'RGB-D only', 'rgbd_mm': 'RGB-D + MM', 'rgbd_sg': 'RGB-D + SG',
+                 'rgbd_sg_attn': 'RGB-D + SG + TD ATTN', 'gcn': 'Kipf et al. (GCN)',
+                 'yang': 'Yang et al.'}
+        label = names[self.model]
+        if self.task == 'choice':      # symbolic task: the SG models see only the graph
+            label = label.replace('RGB-D + ', '')
+        return ('PM: ' + label) if self.premap else label
+
+
+GRID: tuple[Cell, ...] = (
+    # Table I: relational object choice, success rate only.
+    Cell(1, 'choice', 'rgbd_sg', False, paper_sr=(0.997, 0.003)),
+    Cell(1, 'choice', 'rgbd_sg_attn', False, paper_sr=(0.991, 0.009)),
+    Cell(1, 'choice', 'rgbd_sg', True, paper_sr=(0.659, 0.002)),
+    Cell(1, 'choice', 'rgbd_sg_attn', True, paper_sr=(0.993, 0.007)),
+    # Table II: directed object navigation.
+    Cell(2, 'directed', 'rgbd', False, paper_sr=(0.450, 0.141), paper_spl=(0.197, 0.039)),
+    Cell(2, 'directed', 'rgbd_sg', False, paper_sr=(0.967, 0.024), paper_spl=(0.949, 0.001)),
+    Cell(2, 'directed', 'rgbd_sg_attn', False, paper_sr=(0.983, 0.024), paper_spl=(0.958, 0.019)),
+    Cell(2, 'directed', 'rgbd', True, paper_sr=(0.417, 0.103), paper_spl=(0.173, 0.105)),
+    Cell(2, 'directed', 'rgbd_sg', True, paper_sr=(0.425, 0.025), paper_spl=(0.252, 0.046)),
+    Cell(2, 'directed', 'rgbd_sg_attn', True, paper_sr=(0.900, 0.041), paper_spl=(0.864, 0.039)),
+    # Table III: exploratory object navigation (no distractors), with and without pre-mapping.
+    Cell(3, 'exploratory', 'gcn', paper_sr=(0.423, 0.090), paper_spl=(0.221, 0.068)),
+    Cell(3, 'exploratory', 'yang', paper_sr=(0.095, 0.009), paper_spl=(0.0302, 0.0013)),
+    Cell(3, 'exploratory', 'rgbd', paper_sr=(0.586, 0.021), paper_spl=(0.309, 0.061)),
+    Cell(3, 'exploratory', 'rgbd_mm', paper_sr=(0.554, 0.025), paper_spl=(0.273, 0.025)),
+    Cell(3, 'exploratory', 'rgbd_sg', paper_sr=(0.458, 0.135), paper_spl=(0.183, 0.099)),
+    Cell(3, 'exploratory', 'rgbd_sg_attn', paper_sr=(0.879, 0.048), paper_spl=(0.577, 0.041)),
+    Cell(3, 'exploratory', 'rgbd_mm', premap=True, paper_sr=(0.405, 0.023), paper_spl=(0.404, 0.022)),
+    Cell(3, 'exploratory', 'rgbd_sg', premap=True, paper_sr=(0.634, 0.108), paper_spl=(0.402, 0.037)),
+    Cell(3, 'exploratory', 'rgbd_sg_attn', premap=True, paper_sr=(0.921, 0.005), paper_spl=(0.738, 0.045)),
+)
+TABLE_TITLES = {1: 'Table I: relational object choice (SR)',
+                2: 'Table II: directed object navigation (SR, SPL)',
+                3: 'Table III: exploratory object navigation (SR, SPL)'}
+
+# Profiles: extra train.py options per task (None: the task is not in the profile).
+PROFILES = {
+    'paper': {'choice': [], 'directed': [], 'exploratory': []},
+    'cpu': {'choice': ['--total-steps', '20480', '--model-option', 'hidden=32'],
+            'directed': None, 'exploratory': None},
+}
+# Facts about the setup that reading a table needs (they do not depend on particular runs).
+NOTES = {
+    1: ['Notes. (1) Without distractors the choice scene has exactly 4 nodes, all of goal categories '
+        '(2 circles, 2 rectangles), so task-driven pooling and mean pooling select the same nodes: SG '
+        'and SG + TD ATTN compute the same function and, from the same seed, train identically (their '
+        'rows and curves coincide). (2) Profile `cpu`: the paper does not state the choice budget; '
+        'our runs use 20,480 env steps per seed and HGT hidden width 32 (paper model: 128) so that '
+        'the 12 runs fit ~30 min on 2 shared cores; at the paper width the distractor runs measured '
+        '~42 env steps/s (vs ~280 at width 32). A seed that has not left chance SR (0.5) by the end '
+        'of this budget counts as it is; the learning curves show when the others jumped.'],
+    2: ['Navigation cells need the paper budget (1.5 M env steps per seed); on this CPU the PPO '
+        'update of the graph models dominates (README, `python -m hron_jax.bench train`), so they '
+        'are planned for a GPU machine.'],
+    3: ['Estimates for models other than the main one use the main model\'s probe as a proxy '
+        '(flagged): graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'],
+}
+PAPER_STEPS = {'choice': 200_000, 'directed': 1_500_000, 'exploratory': 1_500_000}
+
+
+def train_argv(cell: Cell, seed: int, out: Path, profile: str, extra=()) -> list[str]:
+    opts = PROFILES[profile][cell.task]
+    if opts is None:
+        raise SystemExit(f'profile {profile!r} does not cover the {cell.task} task; use --profile paper')
+    argv = ['python', 'train.py', '--task', cell.task, '--model', cell.model, '--seed', str(seed)]
+    argv += ['--distractors'] if cell.distractors else []
+    argv += ['--premap'] if cell.premap else []
+    return argv + list(opts) + list(extra) + ['--no-progress', '--out', str(out)]
+
+
+# Eval episodes per seed: the paper's 20 for navigation; the one-step choice task is cheap, so 200
+# there (SR resolution 0.005 instead of 0.05).
+EPISODES = {'choice': 200, 'directed': 20, 'exploratory': 20}
+
+
+def eval_argv(run_dir: Path, episodes: int) -> list[str]:
+    # An absolute run dir: orbax (via hron_jax.training.restore_params) rejects relative paths.
+    return ['python', 'eval.py', str(Path(run_dir).resolve()), '--episodes', str(episodes)]
+
+
+# ------------------------------------------------------------------------------------------------
+# Machine and process helpers
+# ------------------------------------------------------------------------------------------------
+
+def machine() -> dict:
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open('/proc/cpuinfo') as f:
+            for line in f:
+                if line.startswith('model name'):
+                    cpu = line.split(':', 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    out = {'cpu': cpu, 'cores': os.cpu_count(), 'python': platform.python_version()}
+    try:
+        out['loadavg'] = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        pass
+    try:
+        import jax
+        out['jax'] = jax.__version__
+        out['devices'] = [str(d) for d in jax.devices()]
+    except Exception:   # report without JAX (e.g. --plan on a bare machine)
+        pass
+    return out
+
+
+def run_logged(argv: list[str], log: Path) -> float:
+    """Run argv (python -> this interpreter) in the repo root, output to `log`; wall seconds."""
+    argv = [sys.executable if a == 'python' else a for a in argv[:1]] + argv[1:]
+    env = dict(os.environ)
+    env.setdefault('JAX_PLATFORMS', 'cpu')
+    env['PYTHONPATH'] = str(ROOT) + (os.pathsep + env['PYTHONPATH'] if env.get('PYTHONPATH') else '')
+    t = time.perf_counter()
+    with open(log, 'w') as f:
+        p = subprocess.run(argv, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, env=env)
+    if p.returncode:
+        raise SystemExit(f'{shlex.join(argv)} failed ({p.returncode}); see {log}')
+    return time.perf_counter() - t
+
+
+# ------------------------------------------------------------------------------------------------
+# Reading run dirs
+# ------------------------------------------------------------------------------------------------
+
+def _rows(run_dir: Path) -> list[dict]:
+    from hron_jax.training import read_metrics
+    return read_metrics(run_dir)
+
+
+def cell_runs(runs: Path, cell: Cell) -> list[Path]:
+    """Run dirs (with config.json) under RUNS/<cell>/, sorted."""
+    base = runs / cell.name
+    if not base.is_dir():
+        return []
+    return sorted(p for p in base.iterdir() if (p / 'config.json').is_file())
+
+
+def steps_per_second(run_dirs: list[Path]) -> float | None:
+    """Median env steps/s (all seeds of a run together) over the logged chunks; compile excluded."""
+    rates = [r['steps_per_s'] for d in run_dirs for r in _rows(d) if r.get('steps_per_s')]
+    return float(np.median(rates)) if rates else None
+
+
+def collect_cell(runs: Path, cell: Cell) -> dict | None:
+    """Aggregate a cell's evaluated runs: per-seed SR / SPL means, steps, wall times, configs."""
+    seeds, steps, train_wall, proc_wall, configs, episodes, machines = [], [], [], [], [], set(), []
+    for d in cell_runs(runs, cell):
+        ev = d / 'eval_trained' / 'eval.json'
+        if not ev.is_file():
+            continue
+        e = json.loads(ev.read_text())
+        s = e['summary']
+        cfg = json.loads((d / 'config.json').read_text())
+        rows = _rows(d)
+        for i, (sr, spl) in enumerate(zip(s['success']['per_seed'], s['spl']['per_seed'])):
+            seeds.append((cfg['config']['seed'] + i, sr, spl))
+        episodes.add(s['episodes'])
+        if rows:
+            steps.append(rows[-1]['env_steps'])
+            train_wall.append(rows[-1]['wall_time'])
+        side = d / 'repro.json'
+        if side.is_file():
+            r = json.loads(side.read_text())
+            proc_wall.append(r.get('train_wall_s', np.nan) + r.get('eval_wall_s', 0.0))
+            if r.get('machine'):
+                machines.append(r['machine'])
+        configs.append(cfg)
+    if not seeds:
+        return None
+    sr = np.array([x[1] for x in seeds])
+    spl = np.array([x[2] for x in seeds])
+    c0 = configs[0]['config']
+    return {'seeds': [x[0] for x in seeds], 'sr': (float(sr.mean()), float(sr.std())),
+            'spl': (float(spl.mean()), float(spl.std())), 'sr_per_seed': sr.tolist(),
+            'episodes': sorted(episodes), 'env_steps': sorted(set(steps)),
+            'train_wall_s': float(np.mean(train_wall)) if train_wall else None,
+            'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
+            'steps_per_s': steps_per_second(cell_runs(runs, cell)),
+            'model_options': c0.get('model_options', []), 'num_envs': c0['ppo']['num_envs'],
+            'meta': configs[0].get('meta', {}), 'machine': machines[0] if machines else None}
+
+
+def curve_rows(run_dirs: list[Path], key: str = 'success') -> list[dict]:
+    """Learning curve over seeds: per env-step row, mean / std over the runs' per-chunk means
+    (rows of hron_jax.training's plot_learning_curves)."""
+    per_run = [{r['env_steps']: r for r in _rows(d)} for d in run_dirs]
+    steps = sorted(set().union(*[set(p) for p in per_run])) if per_run else []
+    out = []
+    for s in steps:
+        row = {'env_steps': s}
+        for k in (key, 'return'):
+            vals = [v for p in per_run if s in p for v in ([p[s][k]] if p[s].get(k) is not None else [])]
+            row[k] = float(np.mean(vals)) if vals else None
+            row[k + '_std'] = float(np.std(vals)) if vals else None
+        out.append(row)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Report
+# ------------------------------------------------------------------------------------------------
+
+def _pm(x, digits=3):
+    return '-' if x is None else f'{x[0]:.{digits}f} ± {x[1]:.{digits}f}'
+
+
+def _fmt_time(s):
+    if s is None or not np.isfinite(s):
+        return '-'
+    return f'{s / 3600:.1f} h' if s >= 3600 else (f'{s / 60:.1f} min' if s >= 60 else f'{s:.0f} s')
+
+
+def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, float | None]:
+    """(text, seconds): training cost of a cell from measured env steps/s: its own runs, else its
+    --probe run, else (flagged as a proxy) the probe of the same task with the main model."""
+    rate, src = steps_per_second(cell_runs(runs, cell)), 'its runs'
+    if rate is None:
+        for name, what in ((cell.name, '--probe'),
+                           (f'{cell.task}_rgbd_sg_attn', f'proxy: probe of {cell.task}_rgbd_sg_attn')):
+            probe = runs / '_probe' / name
+            if (probe / 'config.json').is_file():
+                rate, src = steps_per_second([probe]), what
+                break
+    if rate is None:
+        return 'not measured', None
+    steps = PAPER_STEPS[cell.task] if profile == 'paper' else 20480
+    sec = seeds * steps / rate
+    return f'{rate:.0f} env steps/s ({src}) -> {_fmt_time(sec)}', sec
+
+
+def plot_curves(runs: Path, cells: list[Cell], path: Path, title: str) -> bool:
+    from hron_jax.training import plot_learning_curves
+    curves = {}
+    for c in cells:
+        dirs = cell_runs(runs, c)
+        if dirs and any(_rows(d) for d in dirs):
+            lab = c.label + (' + distractors' if c.distractors else '')
+            curves[f'{lab} ({len(dirs)} seeds)'] = curve_rows(dirs)
+    if not curves:
+        return False
+    path.parent.mkdir(parents=True, exist_ok=True)
+    plot_learning_curves(curves, path, title)
+    return True
+
+
+def write_report(runs: Path, out: Path, seeds: int) -> str:
+    figdir = out.parent / 'reproduction'
+    lines = ['# Reproduction of Tables I-III', '',
+             f'Generated by `python tools/reproduce.py --from-runs` from the run dirs under `{runs}` '
+             f'({time.strftime("%Y-%m-%d %H:%M")}). Numbers below are read from those runs only; '
+             'cells without runs say so and give the commands and the measured cost to produce them.',
+             '']
+    found = {c: collect_cell(runs, c) for c in GRID}
+    m = next((f['machine'] for f in found.values() if f and f['machine']), None) or machine()
+    lines += ['## Machine and protocol', '',
+              f'- machine: {m.get("cpu")}, {m.get("cores")} logical cores, JAX {m.get("jax", "?")} on '
+              f'{", ".join(m.get("devices", [])) or "?"}; load average at launch {m.get("loadavg", "?")} '
+              '(the cores are shared with other jobs, so timings carry ±30 % or more).',
+              f'- per cell: {seeds} seeds (separate `train.py` runs, seeds 0..{seeds - 1}); the final '
+              f'checkpoint of each seed is evaluated with `eval.py RUN --episodes N` (same episode '
+              'starts / goals for every seed and model; actions sampled from the policy).',
+              '- SR / SPL: mean over all episodes of all seeds ± std over seeds of the per-seed means '
+              '(the paper: "averaged over 20 episodes across three random seeds").',
+              '- env steps: per seed; wall: mean per seed of training (excluding compilation, from '
+              'metrics.jsonl) and of the whole train + eval processes (compilation included).', '']
+    for table in (1, 2, 3):
+        cells = [c for c in GRID if c.table == table]
+        lines += [f'## {TABLE_TITLES[table]}', '']
+        spl = table > 1
+        head = ['Distractors' if table < 3 else 'Pre-map', 'Model', 'Paper SR'] + \
+               (['Paper SPL'] if spl else []) + ['Ours SR'] + (['Ours SPL'] if spl else []) + \
+               ['Seeds x episodes', 'Env steps / seed', 'Train wall / seed', 'Process wall / seed', 'Config']
+        lines += ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+        missing = []
+        for c in cells:
+            f = found[c]
+            cond = ('yes' if c.distractors else 'no') if table < 3 else ('yes' if c.premap else 'no')
+            row = [cond, c.label, _pm(c.paper_sr)] + ([_pm(c.paper_spl)] if spl else [])
+            if f is None:
+                row += ['not yet run'] + (['not yet run'] if spl else []) + ['-'] * 5
+                missing.append(c)
+            else:
+                opts = ', '.join(f'{k}={v}' for k, v in f['model_options']) or 'paper model'
+                row += [_pm(f['sr'])] + ([_pm(f['spl'])] if spl else [])
+                row += [f"{len(f['seeds'])} x {'/'.join(map(str, f['episodes']))}",
+                        '/'.join(f'{s:,}' for s in f['env_steps']), _fmt_time(f['train_wall_s']),
+                        _fmt_time(f['proc_wall_s']), f"{opts}; {f['num_envs']} envs"]
+            lines.append('| ' + ' | '.join(row) + ' |')
+        lines.append('')
+        done = [(c, found[c]) for c in cells if found[c] is not None]
+        if done:
+            lines += ['Per-seed SR (seed: SR): ' + '; '.join(
+                f"{c.label}{' + distractors' if c.distractors else ''}{' (PM)' if c.premap and 'PM' not in c.label else ''}: "
+                + ', '.join(f'{sd}: {v:.3f}' for sd, v in zip(f['seeds'], f['sr_per_seed']))
+                for c, f in done), '']
+        if NOTES.get(table):
+            lines += NOTES[table] + ['']
+        fig = figdir / f'table{table}_curves.png'
+        if plot_curves(runs, cells, fig, TABLE_TITLES[table] + ': training SR, mean ± std over seeds'):
+            lines += [f'![learning curves]({fig.relative_to(out.parent).as_posix()})', '',
+                      'Training success rate (episodes completed in each logged chunk of updates, '
+                      'sampled actions) against env steps per seed; band: std over seeds.', '']
+        if missing:
+            lines += ['Not yet run (commands per seed, then the report; estimated training cost for '
+                      f'{seeds} seeds at the paper\'s budget of {PAPER_STEPS[cells[0].task]:,} env '
+                      'steps per seed, from measured steps/s, compilation and evaluation excluded):', '']
+            for c in missing:
+                est, _ = estimate(c, runs, seeds, 'paper')
+                rel = f'runs/repro/{c.name}/s$SEED'
+                cmd = ' '.join(train_argv(c, 0, Path(rel), 'paper')).replace('--seed 0', '--seed $SEED')
+                lines += [f'- `{c.name}` ({c.label}{", distractors" if c.distractors else ""}): '
+                          f'estimated {est}', f'  `for SEED in 0 1 2; do {cmd} && python eval.py '
+                          f'"$PWD/{rel}" --episodes {EPISODES[c.task]}; done`']
+            lines.append('')
+    lines += ['## Regenerating', '',
+              '```bash',
+              'python tools/reproduce.py --plan                 # grid, commands, cost estimates',
+              'python tools/reproduce.py --tables 1 --profile cpu   # Table I as run here (~30 min on 2 cores)',
+              'python tools/reproduce.py --tables 2 3 --profile paper   # navigation (GPU advised)',
+              'python tools/reproduce.py --from-runs            # this report from existing runs',
+              '```', '']
+    text = '\n'.join(lines)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    return text
+
+
+# ------------------------------------------------------------------------------------------------
+# Running
+# ------------------------------------------------------------------------------------------------
+
+def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int) -> None:
+    out = runs / cell.name / f's{seed}'
+    if (out / 'eval_trained' / 'eval.json').is_file():
+        print(f'{cell.name} s{seed}: done already', flush=True)
+        return
+    out.parent.mkdir(parents=True, exist_ok=True)
+    mach = machine()
+    targv = train_argv(cell, seed, out, profile)
+    if (out / 'config.json').is_file():       # an interrupted run: continue it exactly
+        targv = ['python', 'train.py', '--resume', str(out), '--no-progress']
+    print(f'{cell.name} s{seed}: {shlex.join(targv)}', flush=True)
+    t_train = run_logged(targv, out.parent / f's{seed}.train.log')
+    eargv = eval_argv(out, episodes)
+    t_eval = run_logged(eargv, out.parent / f's{seed}.eval.log')
+    (out / 'repro.json').write_text(json.dumps(dict(
+        train_argv=targv, eval_argv=eargv, train_wall_s=t_train, eval_wall_s=t_eval,
+        profile=profile, machine=mach, finished=time.strftime('%Y-%m-%d %H:%M:%S')), indent=2) + '\n')
+    print(f'{cell.name} s{seed}: train {t_train:.0f} s, eval {t_eval:.0f} s', flush=True)
+
+
+def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
+    """A short run of a cell at the paper config (a few updates) to measure env steps/s."""
+    from hron_jax import training as T
+    out = runs / '_probe' / cell.name
+    if (out / 'config.json').is_file():
+        print(f'probe {cell.name}: exists ({out})')
+        return
+    cfg = T.config_from_args({'task': cell.task})
+    steps = cfg.ppo.batch_size * updates
+    argv = train_argv(cell, 0, out, 'paper', extra=['--total-steps', str(steps), '--log-every', '1'])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    wall = run_logged(argv, out.parent / f'{cell.name}.log')
+    print(f'probe {cell.name}: {steps_per_second([out])} steps/s, process {wall:.0f} s', flush=True)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument('--plan', action='store_true', help='print the grid and commands, run nothing')
+    p.add_argument('--from-runs', action='store_true', help='only write the report from existing runs')
+    p.add_argument('--probe', nargs='+', metavar='CELL', help='measure steps/s of these cells (short runs)')
+    p.add_argument('--tables', type=int, nargs='+', default=[1, 2, 3], choices=[1, 2, 3])
+    p.add_argument('--cells', help='regex on cell names (e.g. "choice_.*_dist")')
+    p.add_argument('--profile', choices=tuple(PROFILES), default='cpu')
+    p.add_argument('--seeds', type=int, default=3)
+    p.add_argument('--episodes', type=int, default=None,
+                   help='eval episodes per seed (default: 200 for choice, the paper\'s 20 for navigation)')
+    p.add_argument('--runs', default=str(ROOT / 'runs' / 'repro'))
+    p.add_argument('--out', default=str(ROOT / 'docs' / 'reproduction.md'))
+    a = p.parse_args(argv)
+    runs, out = Path(a.runs), Path(a.out)
+    cells = [c for c in GRID if c.table in a.tables and (not a.cells or re.search(a.cells, c.name))]
+    if a.probe:
+        by_name = {c.name: c for c in GRID}
+        for name in a.probe:
+            if name not in by_name:
+                p.error(f'unknown cell {name!r}; cells: {", ".join(by_name)}')
+            probe(by_name[name], runs)
+        return 0
+    if a.plan:
+        total = 0.0
+        for c in cells:
+            n_done = len([d for d in cell_runs(runs, c) if (d / 'eval_trained' / 'eval.json').is_file()])
+            prof = a.profile if PROFILES[a.profile][c.task] is not None else 'paper'
+            est, sec = estimate(c, runs, a.seeds, prof)
+            total += sec or 0.0
+            print(f'[Table {c.table}] {c.name:34s} {n_done}/{a.seeds} seeds evaluated; {est}')
+            for s in range(a.seeds):
+                d = runs / c.name / f's{s}'
+                print('    ' + shlex.join(train_argv(c, s, d, prof)) + ' && '
+                      + shlex.join(eval_argv(d, a.episodes or EPISODES[c.task])))
+        print(f'estimated training time of the measured cells: {_fmt_time(total)} (compilation and '
+              'evaluation excluded)')
+        return 0
+    if not a.from_runs:
+        for s in range(a.seeds):            # seed-major: every cell gets a first seed early
+            for c in cells:
+                if PROFILES[a.profile][c.task] is None:
+                    print(f'{c.name}: not in profile {a.profile!r}; skipped (use --profile paper)')
+                    continue
+                run_cell_seed(c, s, runs, a.profile, a.episodes or EPISODES[c.task])
+    write_report(runs, out, a.seeds)
+    print(f'wrote {out}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
