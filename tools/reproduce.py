@@ -123,7 +123,8 @@ NOTES = {
         'of this budget counts as it is; the learning curves show when the others jumped.'],
     2: ['Navigation cells need the paper budget (1.5 M env steps per seed); on this CPU the PPO '
         'update of the graph models dominates (README, `python -m hron_jax.bench train`), so they '
-        'are planned for a GPU machine.'],
+        'are planned for a GPU machine. Estimates flagged as a proxy use the exploratory probe of '
+        'the main model: the symmetric room\'s graph is smaller, so they are upper bounds.'],
     3: ['Estimates for models other than the main one use the main model\'s probe as a proxy '
         '(flagged): graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'],
 }
@@ -286,11 +287,13 @@ def _fmt_time(s):
 
 def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, float | None]:
     """(text, seconds): training cost of a cell from measured env steps/s: its own runs, else its
-    --probe run, else (flagged as a proxy) the probe of the same task with the main model."""
+    --probe run, else (flagged as a proxy) the probe of the main model on the same task, else on
+    the exploratory task (the PPO update of the graph model dominates either way)."""
     rate, src = steps_per_second(cell_runs(runs, cell)), 'its runs'
     if rate is None:
         for name, what in ((cell.name, '--probe'),
-                           (f'{cell.task}_rgbd_sg_attn', f'proxy: probe of {cell.task}_rgbd_sg_attn')):
+                           (f'{cell.task}_rgbd_sg_attn', f'proxy: probe of {cell.task}_rgbd_sg_attn'),
+                           ('exploratory_rgbd_sg_attn', 'proxy: probe of exploratory_rgbd_sg_attn')):
             probe = runs / '_probe' / name
             if (probe / 'config.json').is_file():
                 rate, src = steps_per_second([probe]), what

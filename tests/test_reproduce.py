@@ -1,0 +1,63 @@
+"""tools/reproduce.py: --plan, and the report aggregated from hand-made run dirs (no training)."""
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from hron_jax import training as T
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope='module')
+def R():
+    spec = importlib.util.spec_from_file_location('reproduce', ROOT / 'tools' / 'reproduce.py')
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules['reproduce'] = mod     # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def fake_run(d: Path, seed: int, sr: float, spl: float, distractors=True):
+    """A run dir as train.py + eval.py leave it (only the files the report reads)."""
+    d.mkdir(parents=True)
+    cfg = T.config_from_args(dict(task='choice', model='rgbd_sg_attn', distractors=distractors,
+                                  seed=seed, total_steps=1024, model_option=['hidden=32']))
+    (d / 'config.json').write_text(json.dumps({'config': cfg.to_dict(), 'meta': {}}))
+    rows = [dict(update=u, env_steps=256 * u, wall_time=2.0 * u, steps_per_s=128.0, success=s,
+                 success_std=0.0, **{'return': s}) for u, s in ((2, 0.5), (4, sr))]
+    (d / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
+    (d / 'eval_trained').mkdir()
+    summary = {'success': {'mean': sr, 'per_seed': [sr]}, 'spl': {'mean': spl, 'per_seed': [spl]},
+               'seeds': 1, 'episodes': 50}
+    (d / 'eval_trained' / 'eval.json').write_text(json.dumps({'summary': summary}))
+    (d / 'repro.json').write_text(json.dumps({'train_wall_s': 30.0, 'eval_wall_s': 10.0}))
+
+
+def test_report_from_runs(R, tmp_path):
+    runs = tmp_path / 'runs'
+    for seed, sr in enumerate((1.0, 0.9, 0.8)):
+        fake_run(runs / 'choice_rgbd_sg_attn_dist' / f's{seed}', seed, sr, sr)
+    out = tmp_path / 'docs' / 'reproduction.md'
+    assert R.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
+    text = out.read_text()
+    row = next(l for l in text.splitlines() if l.startswith('| yes | SG + TD ATTN |'))
+    # Mean over seeds 0.9, std over seeds of per-seed means sqrt(2/3) * 0.1.
+    assert '0.993 ± 0.007' in row and '0.900 ± 0.082' in row and '3 x 50' in row
+    assert '1,024' in row and '| 8 s |' in row and '40 s' in row and 'hidden=32' in row
+    assert 'SG + TD ATTN + distractors: 0: 1.000, 1: 0.900, 2: 0.800' in text
+    assert (out.parent / 'reproduction' / 'table1_curves.png').is_file()
+    # Cells without runs are listed as not run, with their commands; nothing is invented.
+    assert text.count('not yet run') >= 2 * 15
+    assert 'python train.py --task exploratory --model rgbd_sg_attn --seed $SEED' in text
+
+
+def test_plan_lists_every_cell(R, tmp_path, capsys):
+    assert R.main(['--plan', '--runs', str(tmp_path), '--tables', '1', '2', '3']) == 0
+    text = capsys.readouterr().out
+    for cell in R.GRID:
+        assert cell.name in text
+    assert '--total-steps 20480 --model-option hidden=32' in text      # choice: cpu profile
+    assert 'python train.py --task directed --model rgbd --seed 2 --distractors --no-progress' in text
