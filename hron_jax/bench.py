@@ -524,7 +524,7 @@ def bench_train(task: str = "exploratory", model: str = "rgbd_sg_attn", num_envs
         cfg = T.config_from_args(args)
         t = time.perf_counter()
         prog = T.programs(cfg)
-        runner = prog.init(T.seed_keys(cfg))
+        runner = prog.initialize(T.seed_keys(cfg))
         jax.block_until_ready(runner)
         t_init = time.perf_counter() - t
         fn, t_compile = prog.compiled_chunk(1)

@@ -74,7 +74,8 @@ def reference_policy(task: str, name: str):
 # Rollouts
 # ------------------------------------------------------------------------------------------------
 
-def evaluate(env, policy, params, num_seeds: int, episodes: int, seed: int = 0) -> dict:
+def evaluate(env, policy, params, num_seeds: int, episodes: int, seed: int = 0,
+             compiler_options: dict | None = None) -> dict:
     """Run `episodes` episodes for each of `num_seeds` seeds (params: leading seed axis, or None for
     a parameter-free policy). Returns numpy arrays, see the module docstring; 'states' holds the
     first EnvState of every episode [S, E, ...] (for plots)."""
@@ -108,7 +109,7 @@ def evaluate(env, policy, params, num_seeds: int, episodes: int, seed: int = 0) 
             return states, traj
 
     run = jax.jit(jax.vmap(one_seed, in_axes=(None if params is None else 0, 0)))
-    states, traj = run(params, policy_keys)
+    states, traj = run.lower(params, policy_keys).compile(compiler_options)(params, policy_keys)
     traj = jax.device_get(traj)
     done = np.asarray(traj['done']) > 0.5                          # [S, E, T]
     finished = done.any(-1)
@@ -295,6 +296,8 @@ def build_parser(prog: str = 'eval.py') -> argparse.ArgumentParser:
     p.add_argument('--plots', type=int, default=4, help='episodes drawn in trajectories.png')
     p.add_argument('--video', nargs='?', const='', metavar='PATH',
                    help='animate the RGB-D view of episode 0 (navigation tasks)')
+    p.add_argument('--fast-compile', action='store_true',
+                   help='XLA without LLVM optimisation (as train.py --fast-compile)')
     p.add_argument('--compile-cache', metavar='DIR', help='persistent XLA compilation cache '
                    "(default as train.py; 'none' disables)")
     g = p.add_argument_group('env of a reference policy (without a run directory)')
@@ -375,7 +378,9 @@ def main(argv=None, prog: str = 'eval.py') -> int:
     out.mkdir(parents=True, exist_ok=True)
     log(f'evaluating {policy_name} policy ({mode}) on {config.task}: {num_seeds} seed(s) x '
         f'{args.episodes} episodes' + (f', checkpoint {run_dir}/checkpoints/{step}' if step is not None else ''))
-    result = evaluate(env, policy, params, num_seeds, args.episodes, args.seed)
+    fast = args.fast_compile or config.fast_compile
+    result = evaluate(env, policy, params, num_seeds, args.episodes, args.seed,
+                      dict(T.FAST_COMPILE) if fast else None)
     summary = summarize(result)
     row = dict(task=config.task, distractors=config.distractors,
                model=T.run_label(config) if policy_name == 'trained' else '-',

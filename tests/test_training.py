@@ -1,7 +1,8 @@
 """train.py / eval.py: exact resume, vmapped seeds, sharded envs, SIGTERM, CLI errors, eval table.
 
 All on CPU with the choice task and a tiny model (PPO itself is tested in test_ppo.py). Compiles
-dominate the time, so there are three programs: in-process single-seed runs (hron_jax.training
+dominate the time, so everything compiles with --fast-compile (no LLVM optimisation: ~3x faster
+compiles) and there are three programs: in-process single-seed runs (hron_jax.training
 caches the program per program-relevant config, so every such run shares it), train.py
 subprocesses on 2 forced CPU devices with 2 vmapped seeds (they share a persistent XLA cache, so
 only the first one compiles), and eval.py.
@@ -27,7 +28,7 @@ TINY_MODEL = ['hidden=16', 'heads=1', 'gnn_layers=1', 'goal_fc=16,16,16', 'fusio
               'head_fc=32,32']
 BATCH = 8 * 2     # num_envs x num_steps
 TINY = dict(task='choice', model='rgbd_sg_attn', num_envs=8, num_steps=2, epochs=2, minibatches=2,
-            lr=1e-3, log_every=2, checkpoint_every=4, model_option=TINY_MODEL)
+            lr=1e-3, log_every=2, checkpoint_every=4, model_option=TINY_MODEL, fast_compile=True)
 
 
 def tiny_config(updates: int, **kw) -> T.TrainConfig:
@@ -37,7 +38,7 @@ def tiny_config(updates: int, **kw) -> T.TrainConfig:
 def tiny_argv(updates: int) -> list[str]:
     argv = ['--task', 'choice', '--num-envs', '8', '--num-steps', '2', '--epochs', '2',
             '--minibatches', '2', '--lr', '1e-3', '--log-every', '2', '--checkpoint-every', '4',
-            '--total-steps', str(BATCH * updates), '--no-progress']
+            '--total-steps', str(BATCH * updates), '--no-progress', '--fast-compile']
     for opt in TINY_MODEL:
         argv += ['--model-option', opt]
     return argv
@@ -198,7 +199,7 @@ def test_sharded_run_matches_unsharded(reference, sharded_two_seeds):
 # --- signals -----------------------------------------------------------------------------------
 def test_sigterm_checkpoints_and_resume_continues(tmp_path, xla_cache, sharded_two_seeds):
     # The program of `sharded_two_seeds` (2 devices, 2 seeds) again: it comes from the XLA cache.
-    updates = 300
+    updates = 150   # ~2 s of training on an idle machine: time to send the signal mid-run
     run_dir = tmp_path / 'sig'
     argv = tiny_argv(updates) + ['--num-seeds', '2', '--checkpoint-every', '1000']  # ckpt: init, exit
     env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache,
