@@ -21,8 +21,8 @@ for the navigation tasks, 'poses' [S, E, T, 3] before every step and 'last_pose'
 the last one; `summarize` reduces them to SR / SPL mean, std over seeds
 (of the per-seed means) and std over all episodes.
 
-Outputs in --out (default RUN_DIR/eval_<policy>, or runs/eval_<task>_<policy> for a reference
-policy without a run): eval.md (Markdown table like the paper's), eval.json (summary, per-seed and
+Outputs in --out (default RUN_DIR/eval_<policy>_<greedy|sampled>, or runs/eval_<task>_<policy>...
+for a reference policy without a run): eval.md (Markdown table like the paper's), eval.json (summary, per-seed and
 per-episode values), trajectories.png (top-down paths of the first --plots episodes of seed 0 over
 the house map, hron_jax.envs.viz; for the choice task the scenes with the chosen side), and with
 --video an animation of the agent's RGB-D view in episode 0 of seed 0 (mp4 with ffmpeg, else gif).
@@ -372,9 +372,9 @@ def main(argv=None, prog: str = 'eval.py') -> int:
     mode = 'greedy' if args.greedy else 'sampled'
     if policy_name == 'oracle':
         mode = 'deterministic'
+    name = policy_name if policy_name == 'oracle' else f'{policy_name}_{mode}'
     out = Path(args.out) if args.out else (
-        run_dir / f'eval_{policy_name}' if run_dir is not None else
-        Path('runs') / f'eval_{config.task}_{policy_name}')
+        run_dir / f'eval_{name}' if run_dir is not None else Path('runs') / f'eval_{config.task}_{name}')
     out.mkdir(parents=True, exist_ok=True)
     log(f'evaluating {policy_name} policy ({mode}) on {config.task}: {num_seeds} seed(s) x '
         f'{args.episodes} episodes' + (f', checkpoint {run_dir}/checkpoints/{step}' if step is not None else ''))
