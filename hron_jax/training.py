@@ -472,7 +472,7 @@ def restore_params(run_dir, config: TrainConfig, env, network, step: int | None 
     parameters are read, so `env` may be built differently from training (e.g. no auto-reset)."""
     import jax
     import orbax.checkpoint as ocp
-    run_dir = Path(run_dir)
+    run_dir = Path(run_dir).resolve()     # orbax restores from absolute paths only
     manager, step = _checkpoint_step(run_dir, step)
     path = run_dir / 'checkpoints' / str(step)
     obs = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs
