@@ -326,7 +326,9 @@ def goal_concentration(rec: Record, layer: int = -1) -> dict:
     """Per valid step (flattened), how much of each quantity sits on goal-category nodes.
 
     'goal_fraction': fraction of live nodes that are goal-category nodes; 'pool_model' /
-    'pool_mean': share of the pooled vector from goal nodes (model's pooling, mean pooling);
+    'pool_mean': share of the pooled vector from goal nodes (model's pooling, mean pooling), over
+    the steps whose graph holds at least one goal-category node (before that, task pooling pools
+    nothing and the share is undefined); 'with_goal': fraction of valid steps that have one;
     'hgt_goal' / 'hgt_other': for HGT layer `layer`, received attention / uniform received attention
     per node (>1 = listened to more than mean aggregation would), for goal and other nodes with a
     live out-edge (flattened over nodes); 'live_nodes': live node count per step.
@@ -335,10 +337,12 @@ def goal_concentration(rec: Record, layer: int = -1) -> dict:
     goal = rec.is_goal
     live_n = rec.node_mask.sum(-1)
     shares = pool_shares(rec)
+    has_goal = v & goal.any(-1)
     out = {
         'goal_fraction': (goal.sum(-1) / np.maximum(live_n, 1))[v],
-        'pool_model': (shares['model'] * goal).sum(-1)[v],
-        'pool_mean': (shares['mean'] * goal).sum(-1)[v],
+        'pool_model': (shares['model'] * goal).sum(-1)[has_goal],
+        'pool_mean': (shares['mean'] * goal).sum(-1)[has_goal],
+        'with_goal': float(has_goal.sum() / max(v.sum(), 1)),
         'live_nodes': live_n[v],
     }
     if rec.num_layers:
@@ -374,6 +378,7 @@ def summary(rec: Record, layer: int = -1) -> dict:
     return {'episodes': int(rec.valid.shape[0]), 'steps': int(rec.valid.sum()),
             'success_rate': float(np.mean(rec.success)),
             'live_nodes': med(g['live_nodes']), 'goal_fraction': med(g['goal_fraction']),
+            'steps_with_goal_node': g['with_goal'],
             'pool_goal_share_model': med(g['pool_model']), 'pool_goal_share_mean': med(g['pool_mean']),
             'hgt_ratio_goal': med(g['hgt_goal']), 'hgt_ratio_other': med(g['hgt_other'])}
 
@@ -593,8 +598,10 @@ def plot_goal_concentration(records: dict, layer: int = -1, title: str = ''):
             colours.append(c)
         ticks.append(3 * i + 0.5)
     _boxes(a0, data, pos, colours)
-    a0.set_xticks(ticks, labels, fontsize=8)
+    a0.set_xticks(ticks, [f'{k}\n({100 * stats[k]["with_goal"]:.0f} % of steps)' for k in labels],
+                  fontsize=8)
     a0.set_ylabel('pooled share from goal-category nodes')
+    a0.set_title('steps with a goal-category node in the graph', fontsize=9)
     a0.set_ylim(-0.03, 1.03)
     a0.legend(handles=[plt.Rectangle((0, 0), 1, 1, color='tab:green', alpha=0.6),
                        plt.Rectangle((0, 0), 1, 1, color='tab:gray', alpha=0.6)],

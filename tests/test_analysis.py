@@ -89,7 +89,11 @@ def test_goal_concentration_pool_shares_and_roles():
     g = A.goal_concentration(rec)
     assert g['pool_model'][0] == pytest.approx(1.0)                 # task pooling: all from goal nodes
     assert g['pool_mean'][0] == pytest.approx(3 / 4)                # mean pooling: 3 of 4 live nodes
-    assert g['goal_fraction'][0] == pytest.approx(3 / 4)
+    assert g['goal_fraction'][0] == pytest.approx(3 / 4) and g['with_goal'] == 1.0
+    # Before any goal-category node is seen the pooled share is undefined: such steps are left out.
+    none = toy_record()
+    none.goal_classes[:] = BOOK_C
+    assert A.goal_concentration(none)['pool_model'].size == 0
     # Goal nodes 0, 1, 3 receive 1.1/1.5, 1.8/1.5, 0.9/0.5; the shelf 0.2/0.5.
     np.testing.assert_allclose(np.sort(g['hgt_goal']), np.sort([1.1 / 1.5, 1.8 / 1.5, 0.9 / 0.5]))
     np.testing.assert_allclose(g['hgt_other'], [0.2 / 0.5])
