@@ -3,7 +3,8 @@
 HRON_NB_TINY=1 makes the notebook train a tiny choice-task run itself (512 env steps, tiny model)
 into a fresh HRON_RUN_DIR, roll it out without and with distractors and draw every figure; we check
 that it produced its four figures and its attention summary. Budget: under 3 min on 2 CPU cores
-(most of it is XLA compilation of the training program and of the two rollouts).
+(most of it is XLA compilation of the training program and of the two rollouts); measured 30 s
+at load average ~1 and 173 s at ~7 on the shared 2-core development machine.
 """
 import json
 import os

@@ -126,7 +126,10 @@ NOTES = {
         'are planned for a GPU machine. Estimates flagged as a proxy use the exploratory probe of '
         'the main model: the symmetric room\'s graph is smaller, so they are upper bounds.'],
     3: ['Estimates for models other than the main one use the main model\'s probe as a proxy '
-        '(flagged): graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'],
+        '(flagged): graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster. '
+        'A probe is one PPO update (64 envs x 64 steps) of the paper config, timed without '
+        'compilation; `python -m hron_jax.bench train` (README) measured 16-28 env steps/s for the '
+        'same program at 16-256 envs.'],
 }
 PAPER_STEPS = {'choice': 200_000, 'directed': 1_500_000, 'exploratory': 1_500_000}
 
@@ -218,7 +221,7 @@ def steps_per_second(run_dirs: list[Path]) -> float | None:
 
 def collect_cell(runs: Path, cell: Cell) -> dict | None:
     """Aggregate a cell's evaluated runs: per-seed SR / SPL means, steps, wall times, configs."""
-    seeds, steps, train_wall, proc_wall, configs, episodes, machines = [], [], [], [], [], set(), []
+    seeds, steps, train_wall, proc_wall, configs, episodes, machines, loads = [], [], [], [], [], set(), [], []
     for d in cell_runs(runs, cell):
         ev = d / 'eval_trained' / 'eval.json'
         if not ev.is_file():
@@ -239,6 +242,7 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
             proc_wall.append(r.get('train_wall_s', np.nan) + r.get('eval_wall_s', 0.0))
             if r.get('machine'):
                 machines.append(r['machine'])
+            loads += r.get('loadavg_training') or (r.get('machine') or {}).get('loadavg', [])[:1]
         configs.append(cfg)
     if not seeds:
         return None
@@ -252,7 +256,8 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
             'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
             'steps_per_s': steps_per_second(cell_runs(runs, cell)),
             'model_options': c0.get('model_options', []), 'num_envs': c0['ppo']['num_envs'],
-            'meta': configs[0].get('meta', {}), 'machine': machines[0] if machines else None}
+            'meta': configs[0].get('meta', {}), 'machine': machines[0] if machines else None,
+            'loads': loads}
 
 
 def curve_rows(run_dirs: list[Path], key: str = 'success') -> list[dict]:
@@ -276,7 +281,11 @@ def curve_rows(run_dirs: list[Path], key: str = 'success') -> list[dict]:
 # ------------------------------------------------------------------------------------------------
 
 def _pm(x, digits=3):
-    return '-' if x is None else f'{x[0]:.{digits}f} ± {x[1]:.{digits}f}'
+    if x is None:
+        return '-'
+    if 0 < abs(x[0]) < 0.1:     # the paper's Yang et al. SPL 0.0302 ± 0.0013 keeps its digits
+        digits += 1
+    return f'{x[0]:.{digits}f} ± {x[1]:.{digits}f}'
 
 
 def _fmt_time(s):
@@ -297,6 +306,10 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
             probe = runs / '_probe' / name
             if (probe / 'config.json').is_file():
                 rate, src = steps_per_second([probe]), what
+                side = probe / 'repro.json'
+                load = json.loads(side.read_text()).get('machine', {}).get('loadavg') if side.is_file() else None
+                if load:
+                    src += f', load average {load[0]:.1f}'
                 break
     if rate is None:
         return 'not measured', None
@@ -329,10 +342,13 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
              '']
     found = {c: collect_cell(runs, c) for c in GRID}
     m = next((f['machine'] for f in found.values() if f and f['machine']), None) or machine()
+    loads = [x for f in found.values() if f for x in f['loads']]
+    load_txt = (f'{min(loads):.1f}-{max(loads):.1f}' if loads else str(m.get('loadavg', '?')))
     lines += ['## Machine and protocol', '',
               f'- machine: {m.get("cpu")}, {m.get("cores")} logical cores, JAX {m.get("jax", "?")} on '
-              f'{", ".join(m.get("devices", [])) or "?"}; load average at launch {m.get("loadavg", "?")} '
-              '(the cores are shared with other jobs, so timings carry ±30 % or more).',
+              f'{", ".join(m.get("devices", [])) or "?"}; 1-min load average during the runs '
+              f'{load_txt} (the cores are shared with other jobs: at load ~7 the same program ran '
+              '2.5x slower than at ~1, so wall times are upper bounds).',
               f'- per cell: {seeds} seeds (separate `train.py` runs, seeds 0..{seeds - 1}); the final '
               f'checkpoint of each seed is evaluated with `eval.py RUN --episodes N` (same episode '
               'starts / goals for every seed and model; actions sampled from the policy).',
@@ -381,15 +397,25 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
             lines += ['Not yet run (commands per seed, then the report; estimated training cost for '
                       f'{seeds} seeds at the paper\'s budget of {PAPER_STEPS[cells[0].task]:,} env '
                       'steps per seed, from measured steps/s, compilation and evaluation excluded):', '']
+            total = 0.0
             for c in missing:
-                est, _ = estimate(c, runs, seeds, 'paper')
+                est, sec = estimate(c, runs, seeds, 'paper')
+                total += sec or 0.0
                 rel = f'runs/repro/{c.name}/s$SEED'
                 cmd = ' '.join(train_argv(c, 0, Path(rel), 'paper')).replace('--seed 0', '--seed $SEED')
                 lines += [f'- `{c.name}` ({c.label}{", distractors" if c.distractors else ""}): '
                           f'estimated {est}', f'  `for SEED in 0 1 2; do {cmd} && python eval.py '
                           f'"$PWD/{rel}" --episodes {EPISODES[c.task]}; done`']
+            if total:
+                lines += ['', f'Total estimated training for these cells on this machine: '
+                          f'{_fmt_time(total)} ({total / 86400:.0f} days).']
             lines.append('')
-    lines += ['## Regenerating', '',
+    lines += ['## Attention analysis', '',
+              '`notebooks/attention_analysis.ipynb` (helpers in `hron_jax/analysis.py`) reads any of '
+              'these run dirs (`HRON_RUN_DIR=runs/repro/<cell>/s0`) and shows HGT attention per layer '
+              'and edge type, the task-driven pooling weights, the scene graph over the house map '
+              'and the concentration on goal-category nodes with and without distractors.', '',
+              '## Regenerating', '',
               '```bash',
               'python tools/reproduce.py --plan                 # grid, commands, cost estimates',
               'python tools/reproduce.py --tables 1 --profile cpu   # Table I as run here (~30 min on 2 cores)',
@@ -418,11 +444,13 @@ def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int
         targv = ['python', 'train.py', '--resume', str(out), '--no-progress']
     print(f'{cell.name} s{seed}: {shlex.join(targv)}', flush=True)
     t_train = run_logged(targv, out.parent / f's{seed}.train.log')
+    load_end = os.getloadavg()[0]
     eargv = eval_argv(out, episodes)
     t_eval = run_logged(eargv, out.parent / f's{seed}.eval.log')
     (out / 'repro.json').write_text(json.dumps(dict(
         train_argv=targv, eval_argv=eargv, train_wall_s=t_train, eval_wall_s=t_eval,
-        profile=profile, machine=mach, finished=time.strftime('%Y-%m-%d %H:%M:%S')), indent=2) + '\n')
+        profile=profile, machine=mach, loadavg_training=[mach.get('loadavg', [load_end])[0], load_end],
+        finished=time.strftime('%Y-%m-%d %H:%M:%S')), indent=2) + '\n')
     print(f'{cell.name} s{seed}: train {t_train:.0f} s, eval {t_eval:.0f} s', flush=True)
 
 
@@ -437,7 +465,13 @@ def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
     steps = cfg.ppo.batch_size * updates
     argv = train_argv(cell, 0, out, 'paper', extra=['--total-steps', str(steps), '--log-every', '1'])
     out.parent.mkdir(parents=True, exist_ok=True)
+    mach = machine()
     wall = run_logged(argv, out.parent / f'{cell.name}.log')
+    # The load average matters on a shared machine (measured: 17 vs 43 exploratory steps/s at load
+    # ~7 vs ~1), so it is kept with the measurement.
+    (out / 'repro.json').write_text(json.dumps(dict(
+        train_argv=argv, train_wall_s=wall, machine=mach,
+        loadavg_end=[round(x, 2) for x in os.getloadavg()]), indent=2) + '\n')
     print(f'probe {cell.name}: {steps_per_second([out])} steps/s, process {wall:.0f} s', flush=True)
 
 
