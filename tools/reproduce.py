@@ -149,9 +149,22 @@ def train_argv(cell: Cell, seed: int, out: Path, profile: str, extra=()) -> list
 EPISODES = {'choice': 200, 'directed': 20, 'exploratory': 20}
 
 
+# eval.py's output dir inside a run (named explicitly: eval.py's default name has changed before).
+EVAL_DIR = 'eval_trained'
+
+
 def eval_argv(run_dir: Path, episodes: int) -> list[str]:
-    # An absolute run dir: orbax (via hron_jax.training.restore_params) rejects relative paths.
-    return ['python', 'eval.py', str(Path(run_dir).resolve()), '--episodes', str(episodes)]
+    run_dir = Path(run_dir).resolve()
+    return ['python', 'eval.py', str(run_dir), '--episodes', str(episodes), '--out', str(run_dir / EVAL_DIR)]
+
+
+def eval_json(run_dir: Path) -> Path | None:
+    """The run's eval.json (ours, else eval.py's default sampled-policy dir), or None."""
+    for name in (EVAL_DIR, 'eval_trained_sampled'):
+        p = Path(run_dir) / name / 'eval.json'
+        if p.is_file():
+            return p
+    return None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -223,8 +236,8 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
     """Aggregate a cell's evaluated runs: per-seed SR / SPL means, steps, wall times, configs."""
     seeds, steps, train_wall, proc_wall, configs, episodes, machines, loads = [], [], [], [], [], set(), [], []
     for d in cell_runs(runs, cell):
-        ev = d / 'eval_trained' / 'eval.json'
-        if not ev.is_file():
+        ev = eval_json(d)
+        if ev is None:
             continue
         e = json.loads(ev.read_text())
         s = e['summary']
@@ -412,7 +425,7 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                 cmd = ' '.join(train_argv(c, 0, Path(rel), 'paper')).replace('--seed 0', '--seed $SEED')
                 lines += [f'- `{c.name}` ({c.label}{", distractors" if c.distractors else ""}): '
                           f'estimated {est}', f'  `for SEED in 0 1 2; do {cmd} && python eval.py '
-                          f'"$PWD/{rel}" --episodes {EPISODES[c.task]}; done`']
+                          f'{rel} --episodes {EPISODES[c.task]} --out {rel}/{EVAL_DIR}; done`']
             if total:
                 lines += ['', f'Total estimated training for these cells on this machine: '
                           f'{_fmt_time(total)} ({total / 86400:.0f} days).']
@@ -441,7 +454,7 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
 
 def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int) -> None:
     out = runs / cell.name / f's{seed}'
-    if (out / 'eval_trained' / 'eval.json').is_file():
+    if eval_json(out) is not None:
         print(f'{cell.name} s{seed}: done already', flush=True)
         return
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -509,7 +522,7 @@ def main(argv=None) -> int:
     if a.plan:
         total = 0.0
         for c in cells:
-            n_done = len([d for d in cell_runs(runs, c) if (d / 'eval_trained' / 'eval.json').is_file()])
+            n_done = len([d for d in cell_runs(runs, c) if eval_json(d) is not None])
             prof = a.profile if PROFILES[a.profile][c.task] is not None else 'paper'
             est, sec = estimate(c, runs, a.seeds, prof)
             total += sec or 0.0
