@@ -510,3 +510,25 @@ def test_choice_env_observation_is_accepted():
     variables = _random_variables(model, obs)
     logits, _ = jax.jit(model.apply)(variables, obs)
     assert logits.shape == (2,) and np.isfinite(np.asarray(logits)).all()
+
+
+@pytest.mark.parametrize("size,kernel,stride", [((32, 32), 8, 4), ((8, 8), 4, 2), ((4, 4), 3, 1),
+                                                ((7, 10), 5, 3), ((9, 9), 2, 2)])
+def test_patch_conv_equals_xla_convolution(size, kernel, stride):
+    """PatchConv (slices + matmul, fast gradients inside lax.scan on XLA:CPU) is nn.Conv: same
+    parameter shapes and init, same SAME-padded outputs and gradients as lax's convolution."""
+    import flax.linen as nn
+
+    from hron_jax.models.encoders import RELU_INIT, PatchConv
+
+    x = jax.random.normal(jax.random.PRNGKey(0), (3,) + size + (5,))
+    ours = PatchConv(6, kernel, stride)
+    ref = nn.Conv(6, (kernel, kernel), (stride, stride), padding="SAME", kernel_init=RELU_INIT)
+    p_ours, p_ref = ours.init(jax.random.PRNGKey(1), x), ref.init(jax.random.PRNGKey(1), x)
+    jax.tree.map(np.testing.assert_array_equal, p_ours, p_ref)
+    params = jax.tree.map(lambda a: a + 0.1 * jax.random.normal(jax.random.PRNGKey(2), a.shape), p_ref)
+    np.testing.assert_allclose(ours.apply(params, x), ref.apply(params, x), atol=1e-5)
+    loss = lambda m: lambda p, x: jnp.sum(jnp.sin(m.apply(p, x)))  # noqa: E731
+    g_ours = jax.grad(loss(ours), argnums=(0, 1))(params, x)
+    g_ref = jax.grad(loss(ref), argnums=(0, 1))(params, x)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-4), g_ours, g_ref)
