@@ -69,7 +69,7 @@ class Run:
         if nav:
             opts['auto_reset'] = False
         from hron_jax.envs import make_env
-        return make_env(self.config.task, self.config.scene, **opts)
+        return make_env(self.config.task, self.config.scene_path, **opts)
 
 
 def load_run(run_dir, step: int | None = None, seed_index: int = 0) -> Run:

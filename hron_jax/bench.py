@@ -427,9 +427,8 @@ def bench_model(variants=("rgbd", "rgbd_mm", "rgbd_sg", "rgbd_sg_attn", "gcn", "
 
     Allocator: XLA:CPU takes each call's temporaries from malloc, and glibc returns large blocks
     to the OS, so every call page-faults its whole working set again (measured ~0.45 ms per MB on
-    the 2-core VM: 30-50 % of rgbd_sg_attn's gradient time). Running with MALLOC_ARENA_MAX=1
-    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=17179869184 in the environment keeps the memory and
-    removes that cost (it must be set before the process starts).
+    the 2-core VM: 30-50 % of rgbd_sg_attn's gradient time). `main` (like train.py and eval.py)
+    calls hron_jax.training.tune_malloc() first, which keeps that memory in the process.
     """
     import jax
     import jax.numpy as jnp
@@ -595,6 +594,8 @@ _SUBCOMMANDS = {
 
 
 def main(argv=None) -> None:
+    from .training import tune_malloc
+    tune_malloc()
     parser = argparse.ArgumentParser(prog="python -m hron_jax.bench", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
     for name, (add, _, helptext) in _SUBCOMMANDS.items():

@@ -30,6 +30,7 @@ the house map, hron_jax.envs.viz; for the choice task the scenes with the chosen
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -300,9 +301,10 @@ def build_parser(prog: str = 'eval.py') -> argparse.ArgumentParser:
                    help='XLA without LLVM optimisation (as train.py --fast-compile)')
     p.add_argument('--compile-cache', metavar='DIR', help='persistent XLA compilation cache '
                    "(default as train.py; 'none' disables)")
+    p.add_argument('--scene', help='scene MJCF; with a run: evaluate its policy on this scene instead '
+                   'of the training one (held-out houses), output dir eval_<policy>_<mode>_<scene>')
     g = p.add_argument_group('env of a reference policy (without a run directory)')
     g.add_argument('--task', choices=T.TASKS, default=None)
-    g.add_argument('--scene')
     g.add_argument('--distractors', action='store_true')
     g.add_argument('--premap', action='store_true')
     g.add_argument('--env-option', action='append', metavar='NAME=VALUE')
@@ -322,6 +324,7 @@ def _resolve_run(path: str) -> tuple[Path, int | None]:
 
 
 def main(argv=None, prog: str = 'eval.py') -> int:
+    T.tune_malloc()
     args = build_parser(prog).parse_args(argv)
     log = lambda s: print(s, file=sys.stderr, flush=True)
     try:
@@ -331,10 +334,16 @@ def main(argv=None, prog: str = 'eval.py') -> int:
             run_dir, step = _resolve_run(args.run)
             if args.step is not None:
                 step = args.step
-            if args.task or args.scene or args.distractors or args.premap or args.env_option:
+            if args.task or args.distractors or args.premap or args.env_option:
                 raise T.UsageError('with a run directory the env comes from its config.json; drop '
-                                   '--task / --scene / --distractors / --premap / --env-option')
+                                   '--task / --distractors / --premap / --env-option')
             config = T.load_config(run_dir)
+            if args.scene:   # held-out scenes: the model takes any node count of the vocabulary
+                if config.task == 'choice':
+                    raise T.UsageError('the choice task has no scene (drop --scene)')
+                if not os.path.isfile(args.scene):
+                    raise T.UsageError(f'scene file not found: {args.scene}')
+                config = dataclasses.replace(config, scene=os.path.abspath(args.scene))
             policy_name = args.policy or 'trained'
         else:
             if args.policy in (None, 'trained'):
@@ -373,6 +382,8 @@ def main(argv=None, prog: str = 'eval.py') -> int:
     if policy_name == 'oracle':
         mode = 'deterministic'
     name = policy_name if policy_name == 'oracle' else f'{policy_name}_{mode}'
+    if run_dir is not None and args.scene:
+        name += '_' + Path(args.scene).stem
     out = Path(args.out) if args.out else (
         run_dir / f'eval_{name}' if run_dir is not None else Path('runs') / f'eval_{config.task}_{name}')
     out.mkdir(parents=True, exist_ok=True)

@@ -38,6 +38,7 @@ differs though the printed module is identical, so they compile again).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import dataclasses
 import functools
@@ -90,6 +91,16 @@ MODELS = tuple(VARIANTS)
 _GRAPH_FREE = ('rgbd', 'rgbd_mm')
 
 
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _portable_path(path: str) -> str:
+    """`path` relative to the repository root when it lies inside it, else absolute."""
+    path = os.path.abspath(os.path.join(REPO_ROOT, path))
+    rel = os.path.relpath(path, REPO_ROOT)
+    return path if rel.startswith(os.pardir) else rel
+
+
 class UsageError(Exception):
     """Bad user input (CLI, config): reported as one line, exit code 2."""
 
@@ -107,7 +118,7 @@ class TrainConfig:
     """
     task: str = DEFAULT_TASK
     model: str = DEFAULT_MODEL
-    scene: str | None = None          # absolute path; None for the choice task
+    scene: str | None = None          # repo-relative when inside the repo (see scene_path); None: choice
     distractors: bool = False
     premap: bool = False
     env_options: tuple = ()
@@ -121,6 +132,8 @@ class TrainConfig:
     fast_compile: bool = False        # FAST_COMPILE XLA options (tests, debugging)
 
     def __post_init__(self):
+        if self.scene is not None:  # run dirs stay valid when the repository moves
+            object.__setattr__(self, 'scene', _portable_path(self.scene))
         if self.task not in TASKS:
             raise UsageError(f'unknown task {self.task!r}; valid: {", ".join(TASKS)}')
         if self.model not in MODELS:
@@ -135,6 +148,11 @@ class TrainConfig:
         for name in ('num_seeds', 'log_every', 'checkpoint_every', 'keep_checkpoints'):
             if getattr(self, name) < 1:
                 raise UsageError(f'{name} must be >= 1, got {getattr(self, name)}')
+
+    @property
+    def scene_path(self) -> str | None:
+        """Absolute path of the scene file (relative ones are relative to the repository root)."""
+        return None if self.scene is None else os.path.join(REPO_ROOT, self.scene)
 
     @property
     def num_updates(self) -> int:
@@ -216,7 +234,7 @@ def env_kwargs(config: TrainConfig) -> dict:
 
 def build_env(config: TrainConfig, **overrides):
     from hron_jax.envs import make_env
-    return make_env(config.task, config.scene, **dict(env_kwargs(config), **overrides))
+    return make_env(config.task, config.scene_path, **dict(env_kwargs(config), **overrides))
 
 
 def build_network(config: TrainConfig, num_actions: int):
@@ -442,10 +460,20 @@ def _checkpoint_step(run_dir: Path, step: int | None):
     return manager, step
 
 
-def _restore_error(path: Path, e: Exception) -> CheckpointError:
-    return CheckpointError(
-        f'{path}: cannot restore the checkpoint ({type(e).__name__}: {str(e)[:300]}); delete this '
-        'step directory to resume from the previous checkpoint, or start a new run')
+@contextlib.contextmanager
+def _restoring(manager, path: Path):
+    """Closes `manager`; any failure inside, other than a CheckpointError, becomes a
+    CheckpointError that names `path` and what to do."""
+    try:
+        yield
+    except CheckpointError:
+        raise
+    except Exception as e:
+        raise CheckpointError(
+            f'{path}: cannot restore the checkpoint ({type(e).__name__}: {str(e)[:300]}); delete '
+            'this step directory to resume from the previous checkpoint, or start a new run') from None
+    finally:
+        manager.close()
 
 
 def restore_runner(run_dir: Path, abstract, step: int | None = None):
@@ -455,16 +483,10 @@ def restore_runner(run_dir: Path, abstract, step: int | None = None):
     manager, step = _checkpoint_step(run_dir, step)
     path = run_dir / 'checkpoints' / str(step)
     stored = _storable_abstract(abstract)
-    try:
+    with _restoring(manager, path):
         _check_metadata(manager, step, stored, path)
         runner = manager.restore(step, args=ocp.args.StandardRestore(stored))
-        return _from_storable(abstract, runner), step
-    except CheckpointError:
-        raise
-    except Exception as e:
-        raise _restore_error(path, e) from None
-    finally:
-        manager.close()
+    return _from_storable(abstract, runner), step
 
 
 def restore_params(run_dir, config: TrainConfig, env, network, step: int | None = None):
@@ -479,17 +501,11 @@ def restore_params(run_dir, config: TrainConfig, env, network, step: int | None 
     one = jax.eval_shape(network.init, jax.random.PRNGKey(0), obs)
     item = {'params': jax.tree.map(
         lambda a: jax.ShapeDtypeStruct((config.num_seeds,) + a.shape, a.dtype), one)}
-    try:
+    with _restoring(manager, path):
         _check_metadata(manager, step, item, path, partial=True)
         out = ocp.PyTreeCheckpointer().restore(path / 'default', args=ocp.args.PyTreeRestore(
             item=item, restore_args=ocp.checkpoint_utils.construct_restore_args(item),
             partial_restore=True))
-    except CheckpointError:
-        raise
-    except Exception as e:
-        raise _restore_error(path, e) from None
-    finally:
-        manager.close()
     return out['params'], step
 
 
@@ -1044,6 +1060,26 @@ def default_run_dir(config: TrainConfig) -> Path:
     return Path('runs') / '_'.join(parts)
 
 
+def tune_malloc() -> bool:
+    """Keep freed memory in the process (glibc): one arena, no mmap'd chunks, trim above 2 GiB.
+
+    XLA:CPU takes every call's temporaries from malloc and glibc hands large blocks back to the
+    OS, so each call page-faults its working set again: measured 374 -> 270 ms per rgbd_sg_attn
+    fwd+grad at batch 64 on the 2-core VM (`python -m hron_jax.bench model`), the same as setting
+    MALLOC_ARENA_MAX=1 MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_ before start. Called by the
+    train / eval / bench entry points; returns False where there is no glibc (nothing changes).
+    """
+    import ctypes
+    try:
+        libc = ctypes.CDLL('libc.so.6')
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_max, m_arena_max = -1, -4, -8     # glibc malloc.h
+    return bool(mallopt(m_arena_max, 1) and mallopt(m_mmap_max, 0)
+                and mallopt(m_trim_threshold, 2 ** 31 - 1))
+
+
 def setup_compile_cache(path: str | None) -> None:
     """Persistent XLA cache, so a resumed (or repeated) run does not pay the compile again."""
     import jax
@@ -1086,6 +1122,7 @@ class GracefulStop:
 
 
 def main(argv=None, prog: str = 'train.py') -> int:
+    tune_malloc()
     parser = build_parser(prog)
     args = vars(parser.parse_args(argv))
     log = lambda s: print(s, file=sys.stderr, flush=True)

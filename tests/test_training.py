@@ -285,3 +285,55 @@ def test_eval_writes_table(reference, tmp_path, xla_cache):
                           '--out', str(tmp_path / 'oracle'), '--compile-cache', 'none'])
     assert rc == 0
     assert '1.000 ± 0.000 | 1.000 ± 0.000 |' in (tmp_path / 'oracle' / 'eval.md').read_text()
+
+
+# --- scenes in run dirs, held-out evaluation --------------------------------------------------------
+def test_scene_paths_are_repo_relative_and_resolve_anywhere(tmp_path):
+    inside = T.TrainConfig(task='exploratory', scene=str(ROOT / 'scenes' / 'house.xml'))
+    assert inside.scene == 'scenes/house.xml'      # config.json survives moving the repository
+    assert inside.scene_path == str(ROOT / 'scenes' / 'house.xml')
+    assert T.TrainConfig.from_dict(inside.to_dict()) == inside
+    outside = tmp_path / 'my_house.xml'
+    cfg = T.TrainConfig(task='exploratory', scene=str(outside))
+    assert cfg.scene == str(outside) and cfg.scene_path == str(outside)
+
+
+def test_eval_on_a_held_out_scene(tmp_path):
+    """eval.py RUN --scene OTHER evaluates the run's policy in a house it never saw."""
+    config = T.config_from_args(dict(
+        task='exploratory', model='rgbd_sg_attn', num_envs=2, num_steps=2, epochs=1, minibatches=1,
+        total_steps=4, log_every=1, checkpoint_every=1, fast_compile=True, env_option=['image_size=8'],
+        model_option=TINY_MODEL + ['cnn_fc=16,16,16'], scene=str(ROOT / 'scenes' / 'house.xml')))
+    run_dir = tmp_path / 'run'
+    train(config, run_dir)
+    held_out = ROOT / 'scenes' / 'house_1.xml'
+    rc = evaluation.main([str(run_dir), '--scene', str(held_out), '--episodes', '2', '--plots', '0',
+                          '--compile-cache', 'none'])
+    assert rc == 0
+    res = json.loads((run_dir / 'eval_trained_sampled_house_1' / 'eval.json').read_text())
+    assert res['config']['scene'] == 'scenes/house_1.xml' and res['step'] == 1
+    assert res['summary']['episodes'] == 2
+    for k in ('success', 'spl'):
+        assert 0.0 <= res['summary'][k]['mean'] <= 1.0
+    # The training scene is untouched in the run's own config.
+    assert T.load_config(run_dir).scene == 'scenes/house.xml'
+    assert evaluation.main([str(run_dir), '--scene', 'scenes/no_such_scene.xml']) == 2
+
+
+@pytest.mark.parametrize('argv,needle', [
+    (['--scene', 'scenes/house_1.xml'], 'the choice task has no scene'),
+    (['--distractors'], 'drop --task / --distractors'),
+])
+def test_eval_rejects_bad_env_options_with_a_run(reference, argv, needle, capsys):
+    _, ref_dir, _ = reference
+    assert evaluation.main([str(ref_dir)] + argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith('eval.py: error:') and needle in err and len(err.splitlines()) == 1
+
+
+def test_tune_malloc_applies_on_glibc():
+    # Its speed effect is measured by `python -m hron_jax.bench model` (README); here: it applies.
+    import platform
+    if platform.libc_ver()[0] != 'glibc':
+        pytest.skip('not a glibc system')
+    assert T.tune_malloc() is True
