@@ -19,9 +19,13 @@ construction identical to seed i of a multi-seed one (hron_jax.training). --from
 run dir layout it finds under RUNS/<cell>/ (a multi-seed run counts with all its seeds).
 
 Profiles: 'paper' = the task defaults of hron_jax.training (paper model: HGT hidden 128, 2 heads,
-3 layers; choice 200 k env steps, navigation 1.5 M); 'cpu' = what fits the development machine
-(Table I only: HGT hidden 32, 20 480 env steps per seed). The report states the profile of every
-row. Numbers are only ever read from run dirs: a cell without runs is listed as not run, with its
+3 layers; choice 200 k env steps, navigation 1.5 M); 'cpu' = what fits a session on the 2-core
+development machine (choice: HGT hidden 32, 20 480 env steps per seed; navigation: the paper
+model, 32 768 env steps per seed = 8 PPO updates, ~2 % of the paper's budget). The report states
+the budget of every row.
+
+Generalisation (beyond the paper): each seed of an exploratory main-model cell is also evaluated
+on the generated houses it never saw (HELD_OUT, `eval.py RUN --scene HOUSE`). Numbers are only ever read from run dirs: a cell without runs is listed as not run, with its
 commands and a cost estimate from measured env steps/s (its own runs, else a --probe run).
 
 Report statistics: SR / SPL = mean over all episodes of all seeds, +- std over seeds of the
@@ -109,7 +113,7 @@ TABLE_TITLES = {1: 'Table I: relational object choice (SR)',
 PROFILES = {
     'paper': {'choice': [], 'directed': [], 'exploratory': []},
     'cpu': {'choice': ['--total-steps', '20480', '--model-option', 'hidden=32'],
-            'directed': None, 'exploratory': None},
+            'directed': ['--total-steps', '32768'], 'exploratory': ['--total-steps', '32768']},
 }
 # Facts about the setup that reading a table needs (they do not depend on particular runs).
 NOTES = {
@@ -121,15 +125,17 @@ NOTES = {
         'the 12 runs fit ~30 min on 2 shared cores; at the paper width a 10-update trial of the '
         'distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed that has not left chance SR (0.5) by the end '
         'of this budget counts as it is; the learning curves show when the others jumped.'],
-    2: ['Navigation cells need the paper budget (1.5 M env steps per seed); on this CPU the PPO '
-        'update of the graph models dominates (README, `python -m hron_jax.bench train`), so they '
-        'are planned for a GPU machine. Estimates flagged as a proxy use the probe of the main '
-        'model on the same task (graph-free RGB-D only will be faster).'],
-    3: ['Estimates for models other than the main one use the main model\'s probe as a proxy '
-        '(flagged): graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster. '
-        'A probe is one PPO update (64 envs x 64 steps) of the paper config, timed without '
-        'compilation; `python -m hron_jax.bench train` (README) measured 16-28 env steps/s for the '
-        'same program at 16-256 envs.'],
+    2: ['Notes. (1) Budget: rows of profile `cpu` (the env steps column) ran 32,768 env steps per '
+        'seed, 8 PPO updates of 64 envs x 64 steps, about 2 % of the paper\'s 1.5 M: with episodes of '
+        'up to 500 steps each env finishes only one or two episodes during training, so these rows '
+        'show early learning under the paper\'s model and PPO settings, not converged policies; the '
+        'paper budget is the `paper` profile (commands and measured cost below, when not run). '
+        '(2) The PPO update of the graph models dominates the time on the CPU (README, `python -m '
+        'hron_jax.bench train`); graph-free RGB-D only trains ~3x faster.'],
+    3: ['Notes. (1) Budget as in Table II: profile `cpu` rows ran 32,768 env steps per seed '
+        '(~2 % of the paper\'s 1.5 M). (2) Estimates for cells without runs use, in order, the '
+        'cell\'s own runs, its --probe, or (flagged as a proxy) the main model of the same task: '
+        'graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'],
 }
 PAPER_STEPS = {'choice': 200_000, 'directed': 1_500_000, 'exploratory': 1_500_000}
 
@@ -147,6 +153,19 @@ def train_argv(cell: Cell, seed: int, out: Path, profile: str, extra=()) -> list
 # Eval episodes per seed: the paper's 20 for navigation; the one-step choice task is cheap, so 200
 # there (SR resolution 0.005 instead of 0.05).
 EPISODES = {'choice': 200, 'directed': 20, 'exploratory': 20}
+
+# Held-out houses (hron_jax.scenes generator, seeds 1-3) for the exploratory main model.
+HELD_OUT = ('scenes/house_1.xml', 'scenes/house_2.xml', 'scenes/house_3.xml')
+GENERALISATION_MODELS = ('rgbd_sg_attn',)
+
+
+def held_out_dir(run_dir: Path, scene: str) -> Path:
+    return Path(run_dir) / f'{EVAL_DIR}_{Path(scene).stem}'
+
+
+def profile_steps(profile: str, task: str) -> int:
+    opts = PROFILES[profile][task] or []
+    return int(opts[opts.index('--total-steps') + 1]) if '--total-steps' in opts else PAPER_STEPS[task]
 
 
 # eval.py's output dir inside a run (named explicitly: eval.py's default name has changed before).
@@ -319,6 +338,11 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
     --probe run, else (flagged as a proxy) the probe of the main model on the same task, else on
     the exploratory task (the PPO update of the graph model dominates either way)."""
     rate, src = steps_per_second(cell_runs(runs, cell)), 'its runs'
+    mains = sorted((c for c in GRID if c.task == cell.task and c.model == 'rgbd_sg_attn' and c != cell),
+                   key=lambda c: (c.distractors != cell.distractors, c.premap != cell.premap))
+    for main in mains:
+        if rate is None:
+            rate, src = steps_per_second(cell_runs(runs, main)), f'proxy: runs of {main.name}'
     if rate is None:
         for name, what in ((cell.name, '--probe'),
                            (f'{cell.task}_rgbd_sg_attn', f'proxy: probe of {cell.task}_rgbd_sg_attn'),
@@ -333,7 +357,7 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
                 break
     if rate is None:
         return 'not measured', None
-    steps = PAPER_STEPS[cell.task] if profile == 'paper' else 20480
+    steps = profile_steps(profile, cell.task)
     sec = seeds * steps / rate
     return f'{rate:.0f} env steps/s ({src}) -> {_fmt_time(sec)}', sec
 
@@ -351,6 +375,42 @@ def plot_curves(runs: Path, cells: list[Cell], path: Path, title: str) -> bool:
     path.parent.mkdir(parents=True, exist_ok=True)
     plot_learning_curves(curves, path, title)
     return True
+
+
+def generalisation_section(runs: Path) -> list[str]:
+    """SR / SPL of the exploratory main-model runs in their training house and in HELD_OUT."""
+    rows = []
+    for c in GRID:
+        if c.task != 'exploratory' or c.model not in GENERALISATION_MODELS:
+            continue
+        dirs = [d for d in cell_runs(runs, c) if eval_json(d) is not None]
+        if not dirs:
+            continue
+        cols = []
+        for path_of in [eval_json] + [lambda d, s=s: held_out_dir(d, s) / 'eval.json' for s in HELD_OUT]:
+            per_seed = [json.loads(p.read_text())['summary'] for p in map(path_of, dirs)
+                        if p is not None and p.is_file()]
+            if not per_seed:
+                cols.append('not yet run')
+                continue
+            sr = [x for s in per_seed for x in s['success']['per_seed']]
+            spl = [x for s in per_seed for x in s['spl']['per_seed']]
+            cols.append(f'{np.mean(sr):.3f} / {np.mean(spl):.3f} ({len(sr)} x {per_seed[0]["episodes"]})')
+        steps = sorted({_rows(d)[-1]['env_steps'] for d in dirs if _rows(d)})
+        rows.append([c.label, '/'.join(f'{s:,}' for s in steps)] + cols)
+    out = ['## Generalisation: exploratory navigation in houses not seen in training', '',
+           'Beyond the paper (which trains and tests in one house): the exploratory main model, trained '
+           'in scenes/house.xml, evaluated unchanged (`eval.py RUN --scene HOUSE --episodes 20`) in the '
+           'generated houses ' + ', '.join(f'`{s}`' for s in HELD_OUT) + ' (other room layouts, '
+           'furniture and goal sets; the model takes any node count). Cells: SR / SPL (seeds x '
+           'episodes per seed).', '']
+    if not rows:
+        return out + ['No exploratory main-model run yet: `python tools/reproduce.py --tables 3 '
+                      '--cells "exploratory_rgbd_sg_attn$"` trains one and evaluates it here.', '']
+    head = ['Model', 'Env steps / seed', 'house.xml (training)'] + [Path(s).name for s in HELD_OUT]
+    out += ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+    out += ['| ' + ' | '.join(r) + ' |' for r in rows]
+    return out + ['']
 
 
 def write_report(runs: Path, out: Path, seeds: int) -> str:
@@ -430,6 +490,7 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                 lines += ['', f'Total estimated training for these cells on this machine: '
                           f'{_fmt_time(total)} ({total / 86400:.0f} days).']
             lines.append('')
+    lines += generalisation_section(runs)
     lines += ['## Attention analysis', '',
               '`notebooks/attention_analysis.ipynb` (helpers in `hron_jax/analysis.py`) reads any of '
               'these run dirs (`HRON_RUN_DIR=runs/repro/<cell>/s0`) and shows HGT attention per layer '
@@ -472,6 +533,20 @@ def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int
         profile=profile, machine=mach, loadavg_training=[mach.get('loadavg', [load_end])[0], load_end],
         finished=time.strftime('%Y-%m-%d %H:%M:%S')), indent=2) + '\n')
     print(f'{cell.name} s{seed}: train {t_train:.0f} s, eval {t_eval:.0f} s', flush=True)
+    run_held_out(cell, out, episodes)
+
+
+def run_held_out(cell: Cell, run_dir: Path, episodes: int) -> None:
+    """Evaluate an exploratory main-model run on the houses it was not trained on."""
+    if cell.task != 'exploratory' or cell.model not in GENERALISATION_MODELS:
+        return
+    for scene in HELD_OUT:
+        out = held_out_dir(run_dir, scene)
+        if (out / 'eval.json').is_file():
+            continue
+        argv = eval_argv(run_dir, episodes)[:-2] + ['--scene', str(ROOT / scene), '--out', str(out)]
+        t = run_logged(argv, run_dir.parent / f'{run_dir.name}.eval_{Path(scene).stem}.log')
+        print(f'{cell.name} {run_dir.name} on {scene}: eval {t:.0f} s', flush=True)
 
 
 def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
