@@ -20,19 +20,24 @@ def R():
     return mod
 
 
-def fake_run(d: Path, seed: int, sr: float, spl: float, distractors=True):
+def fake_eval(d: Path, sr: float, spl: float):
+    d.mkdir()
+    summary = {'success': {'mean': sr, 'per_seed': [sr]}, 'spl': {'mean': spl, 'per_seed': [spl]},
+               'seeds': 1, 'episodes': 50}
+    (d / 'eval.json').write_text(json.dumps({'summary': summary}))
+
+
+def fake_run(d: Path, seed: int, sr: float, spl: float, distractors=True, task='choice'):
     """A run dir as train.py + eval.py leave it (only the files the report reads)."""
     d.mkdir(parents=True)
-    cfg = T.config_from_args(dict(task='choice', model='rgbd_sg_attn', distractors=distractors,
-                                  seed=seed, total_steps=1024, model_option=['hidden=32']))
+    cfg = T.config_from_args(dict(task=task, model='rgbd_sg_attn', distractors=distractors,
+                                  seed=seed, total_steps=1024 if task == 'choice' else 4096,
+                                  model_option=['hidden=32']))
     (d / 'config.json').write_text(json.dumps({'config': cfg.to_dict(), 'meta': {}}))
     rows = [dict(update=u, env_steps=256 * u, wall_time=2.0 * u, steps_per_s=128.0, success=s,
                  success_std=0.0, **{'return': s}) for u, s in ((2, 0.5), (4, sr))]
     (d / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
-    (d / 'eval_trained').mkdir()
-    summary = {'success': {'mean': sr, 'per_seed': [sr]}, 'spl': {'mean': spl, 'per_seed': [spl]},
-               'seeds': 1, 'episodes': 50}
-    (d / 'eval_trained' / 'eval.json').write_text(json.dumps({'summary': summary}))
+    fake_eval(d / 'eval_trained', sr, spl)
     (d / 'repro.json').write_text(json.dumps({'train_wall_s': 30.0, 'eval_wall_s': 10.0}))
 
 
@@ -60,4 +65,16 @@ def test_plan_lists_every_cell(R, tmp_path, capsys):
     for cell in R.GRID:
         assert cell.name in text
     assert '--total-steps 20480 --model-option hidden=32' in text      # choice: cpu profile
-    assert 'python train.py --task directed --model rgbd --seed 2 --distractors --no-progress' in text
+    assert ('python train.py --task directed --model rgbd --seed 2 --distractors --total-steps 32768 '
+            '--no-progress') in text
+
+
+def test_generalisation_section_reads_held_out_evals(R, tmp_path):
+    runs = tmp_path / 'runs'
+    for seed, (sr, held) in enumerate(((0.6, 0.2), (0.4, 0.0))):
+        d = runs / 'exploratory_rgbd_sg_attn' / f's{seed}'
+        fake_run(d, seed, sr, sr / 2, distractors=False, task='exploratory')
+        fake_eval(R.held_out_dir(d, R.HELD_OUT[0]), held, held / 2)
+    row = next(l for l in R.generalisation_section(runs) if l.startswith('| RGB-D + SG + TD ATTN |'))
+    # Training house: mean SR of the seeds 0.5, SPL 0.25; house_1: 0.1 / 0.05; others not run.
+    assert row.split(' | ')[2:5] == ['0.500 / 0.250 (2 x 50)', '0.100 / 0.050 (2 x 50)', 'not yet run']
