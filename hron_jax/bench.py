@@ -44,24 +44,34 @@ _DEFAULT_SCENE = os.path.join(_ROOT, "scenes", "house.xml")
 # ---------------------------------------------------------------------------------------------
 # machine description
 
-def machine_info() -> str:
-    import jax
+def machine() -> dict:
+    """The machine a measurement ran on: CPU model, logical / usable cores, 1-min load averages,
+    Python, and (where JAX imports) its version and devices."""
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
     except OSError:
         pass
-    dev = jax.devices()[0]
-    load = ""
+    out = {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+           "usable_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}
     if hasattr(os, "getloadavg"):
-        load = ", load avg %.1f %.1f %.1f" % os.getloadavg()
-    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return (f"CPU: {cpu}, {os.cpu_count()} logical cores ({affinity} usable){load}; "
-            f"jax {jax.__version__} on {dev.platform} ({dev.device_kind})")
+        out["loadavg"] = [round(x, 2) for x in os.getloadavg()]
+    try:
+        import jax
+        out["jax"] = jax.__version__
+        out["devices"] = [str(d) for d in jax.devices()]
+        out["device_kind"] = f"{jax.devices()[0].platform} ({jax.devices()[0].device_kind})"
+    except Exception:   # a report without JAX (e.g. reproduce.py --plan on a bare machine)
+        pass
+    return out
+
+
+def machine_info() -> str:
+    m = machine()
+    load = ", load avg %.1f %.1f %.1f" % tuple(m["loadavg"]) if "loadavg" in m else ""
+    return (f"CPU: {m['cpu']}, {m['cores']} logical cores ({m['usable_cores']} usable){load}; "
+            f"jax {m.get('jax', '?')} on {m.get('device_kind', '?')}")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -37,7 +37,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import re
 import shlex
 import subprocess
@@ -49,6 +48,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from hron_jax.bench import machine  # noqa: E402
 
 
 # ------------------------------------------------------------------------------------------------
@@ -189,30 +190,6 @@ def eval_json(run_dir: Path) -> Path | None:
 # ------------------------------------------------------------------------------------------------
 # Machine and process helpers
 # ------------------------------------------------------------------------------------------------
-
-def machine() -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open('/proc/cpuinfo') as f:
-            for line in f:
-                if line.startswith('model name'):
-                    cpu = line.split(':', 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    out = {'cpu': cpu, 'cores': os.cpu_count(), 'python': platform.python_version()}
-    try:
-        out['loadavg'] = [round(x, 2) for x in os.getloadavg()]
-    except OSError:
-        pass
-    try:
-        import jax
-        out['jax'] = jax.__version__
-        out['devices'] = [str(d) for d in jax.devices()]
-    except Exception:   # report without JAX (e.g. --plan on a bare machine)
-        pass
-    return out
-
 
 def run_logged(argv: list[str], log: Path) -> float:
     """Run argv (python -> this interpreter) in the repo root, output to `log`; wall seconds."""
