@@ -12,6 +12,8 @@ table and the machine it ran on. Subcommands register in `_SUBCOMMANDS` (name ->
             (function `bench_train` below).
     model   forward and forward+grad ms of every model variant on a batch of house scene graphs
             (`bench_model`: round-robin over variants, median of --reps).
+    conv    fwd+grad of the RGB-D conv stack inside lax.scan vs unrolled, nn.Conv vs PatchConv
+            (`bench_conv`: the measurement behind models.encoders.PatchConv).
 
 `env` in detail. Poses are random collision-free positions of the scene (seeded), actions are
 uniform over the 5 actions. Per num_envs B:
@@ -595,11 +597,80 @@ def _run_train(a: argparse.Namespace) -> None:
         print("load avg at the end: %.1f %.1f %.1f" % os.getloadavg())
 
 
+# ---------------------------------------------------------------------------------------------
+# conv benchmark: why the image encoder uses PatchConv
+
+def bench_conv(batch: int = 128, size: int = 32, steps: int = 8, repeats: int = 3) -> list[dict]:
+    """ms per fwd+grad step of the RGB-D conv stack (3 layers of ModelConfig's defaults) on
+    f32[batch, size, size, 4], with flax nn.Conv (XLA convolution) and with encoders.PatchConv,
+    each run as PPO runs minibatches (`steps` SGD steps in one lax.scan) and unrolled (the same
+    steps as straight-line code). XLA:CPU emits the convolution's gradient inside a while loop
+    ~30x slower than outside it; PatchConv's slices + matmul do not depend on the loop."""
+    import flax.linen as nn
+    import jax
+    import jax.numpy as jnp
+
+    from .models.config import ModelConfig
+    from .models.encoders import RELU_INIT, PatchConv
+
+    cfg = ModelConfig()
+    layers = list(zip(cfg.conv_features, cfg.conv_kernels, cfg.conv_strides))
+
+    class Stack(nn.Module):
+        patch: bool
+
+        @nn.compact
+        def __call__(self, x):
+            for f, k, s in layers:
+                conv = (PatchConv(f, k, s) if self.patch else
+                        nn.Conv(f, (k, k), (s, s), padding="SAME", kernel_init=RELU_INIT))
+                x = nn.relu(conv(x))
+            return x
+
+    x = jax.random.normal(jax.random.PRNGKey(0), (steps, batch, size, size, 4))
+    rows = []
+    for name, patch in (("nn.Conv (XLA convolution)", False), ("PatchConv (slices + matmul)", True)):
+        model = Stack(patch)
+        params = model.init(jax.random.PRNGKey(1), x[0])
+        loss = lambda p, xb: jnp.sum(model.apply(p, xb) ** 2)  # noqa: E731
+
+        def sgd(p, xs, unroll):
+            def body(p, xb):
+                g = jax.grad(loss)(p, xb)
+                return jax.tree.map(lambda a, b: a - 1e-6 * b, p, g), None
+            return jax.lax.scan(body, p, xs, unroll=unroll)[0]
+
+        row = dict(conv=name)
+        for label, unroll in (("scan", 1), ("unrolled", steps)):
+            fn = jax.jit(lambda p, xs, u=unroll: sgd(p, xs, u))
+            jax.block_until_ready(fn(params, x))
+            row[label] = 1e3 * _time_calls(fn, [(params, x)], repeats) / steps
+        rows.append(row)
+    return rows
+
+
+def _add_conv_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--batch", type=int, default=128, help="minibatch (PPO: 128)")
+    p.add_argument("--size", type=int, default=32, help="image side")
+    p.add_argument("--steps", type=int, default=8, help="SGD steps per call")
+    p.add_argument("--repeats", type=int, default=3)
+
+
+def _run_conv(a: argparse.Namespace) -> None:
+    print(machine_info())
+    rows = bench_conv(a.batch, a.size, a.steps, a.repeats)
+    print(f"RGB-D conv stack fwd+grad, batch {a.batch}, {a.size}x{a.size}x4, {a.steps} steps per call")
+    print("| conv | ms / step in lax.scan | ms / step unrolled |\n| --- | ---: | ---: |")
+    for r in rows:
+        print(f"| {r['conv']} | {r['scan']:.1f} | {r['unrolled']:.1f} |")
+
+
 _SUBCOMMANDS = {
     "env": (_add_env_args, _run_env, "simulator + camera env steps/s vs native MuJoCo"),
     "graph": (_add_graph_args, _run_graph, "scene-graph / metric-map update cost"),
     "model": (_add_model_args, _run_model, "actor-critic forward / forward+grad ms per variant"),
     "train": (_add_train_args, _run_train, "PPO train env steps/s (env + update) per num_envs"),
+    "conv": (_add_conv_args, _run_conv, "conv encoder fwd+grad in lax.scan: nn.Conv vs PatchConv"),
 }
 
 
