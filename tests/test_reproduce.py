@@ -78,3 +78,23 @@ def test_generalisation_section_reads_held_out_evals(R, tmp_path):
     row = next(l for l in R.generalisation_section(runs) if l.startswith('| RGB-D + SG + TD ATTN |'))
     # Training house: mean SR of the seeds 0.5, SPL 0.25; house_1: 0.1 / 0.05; others not run.
     assert row.split(' | ')[2:5] == ['0.500 / 0.250 (2 x 50)', '0.100 / 0.050 (2 x 50)', 'not yet run']
+
+
+def test_attention_section_reads_summaries_and_figures(R, tmp_path):
+    runs, out_dir = tmp_path / 'runs', tmp_path / 'docs'
+    name = R.ATTENTION_CELLS[0]
+    (runs / name / 's0').mkdir(parents=True)
+    summary = {'no distractors': {'episodes': 8, 'pool_goal_share_model': 1.0, 'pool_goal_share_mean': 0.5},
+               'distractors': {'episodes': 8, 'pool_goal_share_model': 1.0, 'pool_goal_share_mean': 0.25}}
+    (runs / name / 's0' / 'attention_summary.json').write_text(json.dumps(
+        dict(step=8, episodes=8, max_steps=300, summary=summary)))
+    figdir = out_dir / 'reproduction'
+    figdir.mkdir(parents=True)
+    (figdir / f'{name}_edge_types.png').write_bytes(b'png')
+    text = '\n'.join(R.attention_section(runs, figdir, out_dir))
+    assert f'### {name} (seed 0, checkpoint after 8 updates)' in text
+    assert '| condition | episodes | pool goal share model | pool goal share mean |' in text
+    assert '| distractors | 8 | 1 | 0.25 |' in text
+    assert f'](reproduction/{name}_edge_types.png)' in text and 'graph_on_map' not in text
+    # The other cell has no summary: no section invented for it.
+    assert f'### {R.ATTENTION_CELLS[1]}' not in text

@@ -160,6 +160,10 @@ HELD_OUT = ('scenes/house_1.xml', 'scenes/house_2.xml', 'scenes/house_3.xml')
 GENERALISATION_MODELS = ('rgbd_sg_attn',)
 
 
+# Trained main models whose attention the report draws (seed 0), with --attention.
+ATTENTION_CELLS = ('directed_rgbd_sg_attn_dist', 'exploratory_rgbd_sg_attn')
+
+
 def held_out_dir(run_dir: Path, scene: str) -> Path:
     return Path(run_dir) / f'{EVAL_DIR}_{Path(scene).stem}'
 
@@ -390,6 +394,63 @@ def generalisation_section(runs: Path) -> list[str]:
     return out + ['']
 
 
+def attention_figures(runs: Path, figdir: Path, episodes: int = 8, max_steps: int = 300) -> None:
+    """Figures and attention_summary.json of seed 0 of each of ATTENTION_CELLS (hron_jax.analysis,
+    as the notebook draws them): `episodes` sampled episodes without and with distractors."""
+    import matplotlib
+    matplotlib.use('Agg')
+    from hron_jax import analysis as A
+    for name in ATTENTION_CELLS:
+        run_dir = runs / name / 's0'
+        if eval_json(run_dir) is None:
+            print(f'attention: {name} has no evaluated seed 0; skipped', flush=True)
+            continue
+        t = time.perf_counter()
+        run = A.load_run(run_dir)
+        recs = {label: A.collect(run, episodes=episodes, max_steps=max_steps,
+                                 env=run.env_variant(distractors=dist))
+                for label, dist in (('no distractors', False), ('distractors', True))}
+        rec = recs['distractors' if run.config.distractors else 'no distractors']
+        ep = int(np.argmax(rec.success)) if rec.success.any() else 0
+        figdir.mkdir(parents=True, exist_ok=True)
+        for kind, fig in (('graph_on_map', A.plot_graph_on_map(rec, episode=ep)),
+                          ('edge_types', A.plot_edge_type_attention(rec, title=f'{name}: attention mass per edge type')),
+                          ('goal_concentration', A.plot_goal_concentration(recs, title=f'{name}: goal-category nodes vs others'))):
+            fig.savefig(figdir / f'{name}_{kind}.png', dpi=90, bbox_inches='tight')
+        summary = {label: A.summary(r) for label, r in recs.items()}
+        (run_dir / 'attention_summary.json').write_text(json.dumps(
+            dict(run_dir=_rel(run_dir), step=run.step, episodes=episodes, max_steps=max_steps,
+                 summary=summary), indent=2) + '\n')
+        print(f'attention: {name} in {time.perf_counter() - t:.0f} s', flush=True)
+
+
+def attention_section(runs: Path, figdir: Path, out_dir: Path) -> list[str]:
+    lines = ['## Attention analysis', '',
+             '`notebooks/attention_analysis.ipynb` (helpers in `hron_jax/analysis.py`) reads any of '
+             'these run dirs (`HRON_RUN_DIR=runs/repro/<cell>/s0`) and shows HGT attention per layer '
+             'and edge type, the task-driven pooling weights, the scene graph over the house map '
+             'and the concentration on goal-category nodes with and without distractors.', '']
+    for name in ATTENTION_CELLS:
+        side = runs / name / 's0' / 'attention_summary.json'
+        if not side.is_file():
+            continue
+        a = json.loads(side.read_text())
+        lines += [f'### {name} (seed 0, checkpoint after {a["step"]} updates)', '',
+                  f'`python tools/reproduce.py --attention`: {a["episodes"]} sampled episodes of at most '
+                  f'{a["max_steps"]} steps, without and with distractors.', '',
+                  '| condition | ' + ' | '.join(k.replace('_', ' ') for k in a['summary'][next(iter(a['summary']))]) + ' |',
+                  '|---|' + '---|' * len(a['summary'][next(iter(a['summary']))])]
+        for label, sm in a['summary'].items():
+            lines.append(f'| {label} | ' + ' | '.join(f'{v:.3g}' if isinstance(v, float) else str(v)
+                                                     for v in sm.values()) + ' |')
+        lines.append('')
+        for kind in ('graph_on_map', 'edge_types', 'goal_concentration'):
+            png = figdir / f'{name}_{kind}.png'
+            if png.is_file():
+                lines += [f'![{name} {kind}]({png.relative_to(out_dir).as_posix()})', '']
+    return lines
+
+
 def write_report(runs: Path, out: Path, seeds: int) -> str:
     figdir = out.parent / 'reproduction'
     lines = ['# Reproduction of Tables I-III', '',
@@ -468,16 +529,13 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                           f'{_fmt_time(total)} ({total / 86400:.0f} days).']
             lines.append('')
     lines += generalisation_section(runs)
-    lines += ['## Attention analysis', '',
-              '`notebooks/attention_analysis.ipynb` (helpers in `hron_jax/analysis.py`) reads any of '
-              'these run dirs (`HRON_RUN_DIR=runs/repro/<cell>/s0`) and shows HGT attention per layer '
-              'and edge type, the task-driven pooling weights, the scene graph over the house map '
-              'and the concentration on goal-category nodes with and without distractors.', '',
-              '## Regenerating', '',
+    lines += attention_section(runs, figdir, out.parent)
+    lines += ['## Regenerating', '',
               '```bash',
               'python tools/reproduce.py --plan                 # grid, commands, cost estimates',
               'python tools/reproduce.py --tables 1 --profile cpu   # Table I as run here (~30 min on 2 cores)',
               'python tools/reproduce.py --tables 2 3 --profile paper   # navigation (GPU advised)',
+              'python tools/reproduce.py --attention            # attention figures of the trained main models',
               'python tools/reproduce.py --from-runs            # this report from existing runs',
               '```', '']
     text = '\n'.join(lines)
@@ -552,6 +610,8 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument('--plan', action='store_true', help='print the grid and commands, run nothing')
     p.add_argument('--from-runs', action='store_true', help='only write the report from existing runs')
+    p.add_argument('--attention', action='store_true',
+                   help='draw the attention figures of the trained main models, then the report')
     p.add_argument('--probe', nargs='+', metavar='CELL', help='measure steps/s of these cells (short runs)')
     p.add_argument('--tables', type=int, nargs='+', default=[1, 2, 3], choices=[1, 2, 3])
     p.add_argument('--cells', help='regex on cell names (e.g. "choice_.*_dist")')
@@ -586,7 +646,9 @@ def main(argv=None) -> int:
         print(f'estimated training time of the measured cells: {_fmt_time(total)} (compilation and '
               'evaluation excluded)')
         return 0
-    if not a.from_runs:
+    if a.attention:
+        attention_figures(runs, out.parent / 'reproduction')
+    elif not a.from_runs:
         for s in range(a.seeds):            # seed-major: every cell gets a first seed early
             for c in cells:
                 if PROFILES[a.profile][c.task] is None:
