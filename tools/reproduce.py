@@ -21,8 +21,10 @@ run dir layout it finds under RUNS/<cell>/ (a multi-seed run counts with all its
 Profiles: 'paper' = the task defaults of hron_jax.training (paper model: HGT hidden 128, 2 heads,
 3 layers; choice 200 k env steps, navigation 1.5 M); 'cpu' = what fits a session on the 2-core
 development machine (choice: HGT hidden 32, 20 480 env steps per seed; navigation: the paper
-model, 32 768 env steps per seed = 8 PPO updates, ~2 % of the paper's budget). The report states
-the budget of every row.
+model, directed 131 072 env steps per seed = 32 PPO updates, exploratory 32 768 = 8 updates, i.e.
+9 % and 2 % of the paper's budget). The report states the budget of every row. A run dir that
+exists with fewer env steps than its profile asks for is resumed to that budget (`train.py
+--resume RUN --total-steps N`) and evaluated again.
 
 Generalisation (beyond the paper): each seed of an exploratory main-model cell is also evaluated
 on the generated houses it never saw (HELD_OUT, `eval.py RUN --scene HOUSE`). Numbers are only ever read from run dirs: a cell without runs is listed as not run, with its
@@ -39,6 +41,7 @@ import json
 import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -114,8 +117,16 @@ TABLE_TITLES = {1: 'Table I: relational object choice (SR)',
 PROFILES = {
     'paper': {'choice': [], 'directed': [], 'exploratory': []},
     'cpu': {'choice': ['--total-steps', '20480', '--model-option', 'hidden=32'],
-            'directed': ['--total-steps', '32768'], 'exploratory': ['--total-steps', '32768']},
+            'directed': ['--total-steps', '131072'], 'exploratory': ['--total-steps', '32768']},
 }
+PAPER_STEPS = {'choice': 200_000, 'directed': 1_500_000, 'exploratory': 1_500_000}
+
+
+def profile_steps(profile: str, task: str) -> int:
+    opts = PROFILES[profile][task] or []
+    return int(opts[opts.index('--total-steps') + 1]) if '--total-steps' in opts else PAPER_STEPS[task]
+
+
 # Facts about the setup that reading a table needs (they do not depend on particular runs).
 NOTES = {
     1: ['Notes. (1) Without distractors the choice scene has exactly 4 nodes, all of goal categories '
@@ -126,19 +137,23 @@ NOTES = {
         'the 12 runs fit ~30 min on 2 shared cores; at the paper width a 10-update trial of the '
         'distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed that has not left chance SR (0.5) by the end '
         'of this budget counts as it is; the learning curves show when the others jumped.'],
-    2: ['Notes. (1) Budget: rows of profile `cpu` (the env steps column) ran 32,768 env steps per '
-        'seed, 8 PPO updates of 64 envs x 64 steps, about 2 % of the paper\'s 1.5 M: with episodes of '
-        'up to 500 steps each env finishes only one or two episodes during training, so these rows '
-        'show early learning under the paper\'s model and PPO settings, not converged policies; the '
-        'paper budget is the `paper` profile (commands and measured cost below, when not run). '
+    2: ['Notes. (1) Budget: the env steps column; rows of profile `cpu` ran '
+        f'{profile_steps("cpu", "directed"):,} env steps per seed '
+        f'({profile_steps("cpu", "directed") // 4096} PPO updates of 64 envs x 64 steps, '
+        f'{100 * profile_steps("cpu", "directed") / PAPER_STEPS["directed"]:.0f} % of the paper\'s '
+        '1.5 M): with episodes of up to 500 steps each env finishes only a few episodes during '
+        'training, so these rows show early learning under the paper\'s model and PPO settings, not '
+        'converged policies; the paper budget is the `paper` profile (commands and measured cost '
+        'below, when not run). '
         '(2) The PPO update of the graph models dominates the time on the CPU (README, `python -m '
         'hron_jax.bench train`); graph-free RGB-D only trains ~3x faster.'],
-    3: ['Notes. (1) Budget as in Table II: profile `cpu` rows ran 32,768 env steps per seed '
-        '(~2 % of the paper\'s 1.5 M). (2) Estimates for cells without runs use, in order, the '
+    3: ['Notes. (1) Budget: profile `cpu` rows ran '
+        f'{profile_steps("cpu", "exploratory"):,} env steps per seed '
+        f'({100 * profile_steps("cpu", "exploratory") / PAPER_STEPS["exploratory"]:.0f} % of the '
+        'paper\'s 1.5 M). (2) Estimates for cells without runs use, in order, the '
         'cell\'s own runs, its --probe, or (flagged as a proxy) the main model of the same task: '
         'graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'],
 }
-PAPER_STEPS = {'choice': 200_000, 'directed': 1_500_000, 'exploratory': 1_500_000}
 
 
 def train_argv(cell: Cell, seed: int, out: Path, profile: str, extra=()) -> list[str]:
@@ -167,10 +182,6 @@ ATTENTION_CELLS = ('directed_rgbd_sg_attn_dist', 'exploratory_rgbd_sg_attn')
 def held_out_dir(run_dir: Path, scene: str) -> Path:
     return Path(run_dir) / f'{EVAL_DIR}_{Path(scene).stem}'
 
-
-def profile_steps(profile: str, task: str) -> int:
-    opts = PROFILES[profile][task] or []
-    return int(opts[opts.index('--total-steps') + 1]) if '--total-steps' in opts else PAPER_STEPS[task]
 
 
 # eval.py's output dir inside a run (named explicitly: eval.py's default name has changed before).
@@ -550,21 +561,27 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
 
 def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int) -> None:
     out = runs / cell.name / f's{seed}'
-    if eval_json(out) is not None:
+    budget = profile_steps(profile, cell.task)
+    trained = _rows(out)[-1]['env_steps'] if (out / 'config.json').is_file() and _rows(out) else 0
+    if eval_json(out) is not None and trained >= budget:
         print(f'{cell.name} s{seed}: done already', flush=True)
         return
     out.parent.mkdir(parents=True, exist_ok=True)
     mach = machine()
     targv = train_argv(cell, seed, out, profile)
-    if (out / 'config.json').is_file():       # an interrupted run: continue it exactly
-        targv = ['python', 'train.py', '--resume', str(out), '--no-progress']
+    previous = json.loads((out / 'repro.json').read_text()) if (out / 'repro.json').is_file() else {}
+    if (out / 'config.json').is_file():       # interrupted, or shorter than the budget: continue
+        targv = ['python', 'train.py', '--resume', str(out), '--total-steps', str(budget), '--no-progress']
+        for scene in HELD_OUT:                # evaluations of the shorter run are stale
+            shutil.rmtree(held_out_dir(out, scene), ignore_errors=True)
     print(f'{cell.name} s{seed}: {shlex.join(targv)}', flush=True)
     t_train = run_logged(targv, out.parent / f's{seed}.train.log')
     load_end = os.getloadavg()[0]
     eargv = eval_argv(out, episodes)
     t_eval = run_logged(eargv, out.parent / f's{seed}.eval.log')
     (out / 'repro.json').write_text(json.dumps(dict(
-        train_argv=targv, eval_argv=eargv, train_wall_s=t_train, eval_wall_s=t_eval,
+        train_argv=targv, eval_argv=eargv, train_wall_s=t_train + previous.get('train_wall_s', 0.0),
+        eval_wall_s=t_eval,
         profile=profile, machine=mach, loadavg_training=[mach.get('loadavg', [load_end])[0], load_end],
         finished=time.strftime('%Y-%m-%d %H:%M:%S')), indent=2) + '\n')
     print(f'{cell.name} s{seed}: train {t_train:.0f} s, eval {t_eval:.0f} s', flush=True)
