@@ -478,7 +478,8 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
               f'{", ".join(m.get("devices", [])) or "?"}; 1-min load average during the runs '
               f'{load_txt} (the cores are shared with other jobs: at load ~7 the same program ran '
               '2.5x slower than at ~1, so wall times are upper bounds).',
-              f'- per cell: {seeds} seeds (separate `train.py` runs, seeds 0..{seeds - 1}); the final '
+              f'- per cell: {seeds} seeds planned (separate `train.py` runs, seeds 0..{seeds - 1}; the '
+              '"Seeds x episodes" column says how many ran); the final '
               f'checkpoint of each seed is evaluated with `eval.py RUN --episodes N` (same episode '
               'starts / goals for every seed and model; actions sampled from the policy).',
               '- SR / SPL: mean over all episodes of all seeds ± std over seeds of the per-seed means '
