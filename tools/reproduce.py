@@ -504,7 +504,9 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                 missing.append(c)
             else:
                 opts = ', '.join(f'{k}={v}' for k, v in f['model_options']) or 'paper model'
-                row += [_pm(f['sr'])] + ([_pm(f['spl'])] if spl else [])
+                # One seed has no spread over seeds to report (± 0 would claim one).
+                ours = (lambda x: f'{x[0]:.3f} (1 seed)') if len(f['seeds']) == 1 else _pm
+                row += [ours(f['sr'])] + ([ours(f['spl'])] if spl else [])
                 row += [f"{len(f['seeds'])} x {'/'.join(map(str, f['episodes']))}",
                         '/'.join(f'{s:,}' for s in f['env_steps']), _fmt_time(f['train_wall_s']),
                         _fmt_time(f['proc_wall_s']), f"{opts}; {f['num_envs']} envs"]
