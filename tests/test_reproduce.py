@@ -98,3 +98,28 @@ def test_attention_section_reads_summaries_and_figures(R, tmp_path):
     assert f'](reproduction/{name}_edge_types.png)' in text and 'graph_on_map' not in text
     # The other cell has no summary: no section invented for it.
     assert f'### {R.ATTENTION_CELLS[1]}' not in text
+
+
+def test_a_shorter_run_is_resumed_to_the_profile_budget(R, tmp_path, monkeypatch):
+    runs = tmp_path / 'runs'
+    cell = next(c for c in R.GRID if c.name == 'exploratory_rgbd_sg_attn')
+    d = runs / cell.name / 's0'
+    fake_run(d, 0, 0.5, 0.25, distractors=False, task='exploratory')   # 1,024 env steps, evaluated
+    stale = R.held_out_dir(d, R.HELD_OUT[0])
+    fake_eval(stale, 0.0, 0.0)
+    calls = []
+    monkeypatch.setattr(R, 'run_logged', lambda argv, log: calls.append(argv) or 5.0)
+    R.run_cell_seed(cell, 0, runs, 'cpu', 20)
+    budget = str(R.profile_steps('cpu', 'exploratory'))
+    assert calls[0] == ['python', 'train.py', '--resume', str(d), '--total-steps', budget, '--no-progress']
+    assert calls[1][:2] == ['python', 'eval.py'] and not stale.exists()     # re-evaluated, stale gone
+    assert [c[c.index('--scene') + 1] for c in calls[2:]] == [str(R.ROOT / s) for s in R.HELD_OUT]
+    side = json.loads((d / 'repro.json').read_text())
+    assert side['train_wall_s'] == 35.0       # 30 s of the first run + 5 s of the extension
+    # A run at its budget is left alone.
+    calls.clear()
+    rows = [json.loads(l) for l in (d / 'metrics.jsonl').read_text().splitlines()]
+    rows[-1]['env_steps'] = int(budget)
+    (d / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
+    R.run_cell_seed(cell, 0, runs, 'cpu', 20)
+    assert calls == []
