@@ -78,6 +78,11 @@ def test_generalisation_section_reads_held_out_evals(R, tmp_path):
     row = next(l for l in R.generalisation_section(runs) if l.startswith('| RGB-D + SG + TD ATTN |'))
     # Training house: mean SR of the seeds 0.5, SPL 0.25; house_1: 0.1 / 0.05; others not run.
     assert row.split(' | ')[2:5] == ['0.500 / 0.250 (2 x 50)', '0.100 / 0.050 (2 x 50)', 'not yet run']
+    # The chance level of each house comes from the random-policy evaluations under _reference.
+    (runs / '_reference').mkdir()
+    fake_eval(R.reference_dir(runs, 'random', R.TRAIN_HOUSE), 0.05, 0.01)
+    chance = next(l for l in R.generalisation_section(runs) if l.startswith('| random policy'))
+    assert chance.split(' | ')[2:4] == ['0.050 / 0.010 (1 x 50)', 'not yet run']
 
 
 def test_attention_section_reads_summaries_and_figures(R, tmp_path):

@@ -179,6 +179,27 @@ GENERALISATION_MODELS = ('rgbd_sg_attn',)
 ATTENTION_CELLS = ('directed_rgbd_sg_attn_dist', 'exploratory_rgbd_sg_attn')
 
 
+TRAIN_HOUSE = 'scenes/house.xml'
+
+
+def reference_dir(runs: Path, policy: str, scene: str) -> Path:
+    return runs / '_reference' / f'{policy}_{Path(scene).stem}'
+
+
+def run_references(runs: Path, episodes: int = 20) -> None:
+    """Random-policy SR / SPL in every house of the generalisation table (its chance level: the
+    houses differ in size and goal sets, so raw SRs across houses are not comparable alone)."""
+    for scene in (TRAIN_HOUSE,) + HELD_OUT:
+        out = reference_dir(runs, 'random', scene)
+        if (out / 'eval.json').is_file():
+            continue
+        out.mkdir(parents=True, exist_ok=True)
+        argv = ['python', 'eval.py', '--policy', 'random', '--task', 'exploratory', '--scene',
+                str(ROOT / scene), '--episodes', str(episodes), '--plots', '0', '--out', str(out)]
+        t = run_logged(argv, out.parent / f'random_{Path(scene).stem}.log')
+        print(f'random policy on {scene}: eval {t:.0f} s', flush=True)
+
+
 def held_out_dir(run_dir: Path, scene: str) -> Path:
     return Path(run_dir) / f'{EVAL_DIR}_{Path(scene).stem}'
 
@@ -390,6 +411,14 @@ def generalisation_section(runs: Path) -> list[str]:
             cols.append(f'{np.mean(sr):.3f} / {np.mean(spl):.3f} ({len(sr)} x {per_seed[0]["episodes"]})')
         steps = sorted({_rows(d)[-1]['env_steps'] for d in dirs if _rows(d)})
         rows.append([c.label, '/'.join(f'{s:,}' for s in steps)] + cols)
+    ref = []
+    for scene in (TRAIN_HOUSE,) + HELD_OUT:
+        p = reference_dir(runs, 'random', scene) / 'eval.json'
+        sm = json.loads(p.read_text())['summary'] if p.is_file() else None
+        ref.append(f"{sm['success']['mean']:.3f} / {sm['spl']['mean']:.3f} (1 x {sm['episodes']})"
+                   if sm else 'not yet run')
+    if rows:
+        rows.append(['random policy (chance level)', '-'] + ref)
     out = ['## Generalisation: exploratory navigation in houses not seen in training', '',
            'Beyond the paper (which trains and tests in one house): the exploratory main model, trained '
            'in scenes/house.xml, evaluated unchanged (`eval.py RUN --scene HOUSE --episodes 20`) in the '
@@ -399,6 +428,9 @@ def generalisation_section(runs: Path) -> list[str]:
     if not rows:
         return out + ['No exploratory main-model run yet: `python tools/reproduce.py --tables 3 '
                       '--cells "exploratory_rgbd_sg_attn$"` trains one and evaluates it here.', '']
+    out[-2] += (' Last row: a uniformly random policy in each house (`eval.py --policy random '
+                '--task exploratory --scene HOUSE`), the chance level: houses differ in size, start '
+                'distances and goal sets, so an SR is only meaningful next to it.')
     head = ['Model', 'Env steps / seed', 'house.xml (training)'] + [Path(s).name for s in HELD_OUT]
     out += ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     out += ['| ' + ' | '.join(r) + ' |' for r in rows]
@@ -631,7 +663,8 @@ def main(argv=None) -> int:
     p.add_argument('--plan', action='store_true', help='print the grid and commands, run nothing')
     p.add_argument('--from-runs', action='store_true', help='only write the report from existing runs')
     p.add_argument('--attention', action='store_true',
-                   help='draw the attention figures of the trained main models, then the report')
+                   help='draw the attention figures of the trained main models and evaluate the random '
+                   'policy in each house of the generalisation table, then the report')
     p.add_argument('--probe', nargs='+', metavar='CELL', help='measure steps/s of these cells (short runs)')
     p.add_argument('--tables', type=int, nargs='+', default=[1, 2, 3], choices=[1, 2, 3])
     p.add_argument('--cells', help='regex on cell names (e.g. "choice_.*_dist")')
@@ -668,6 +701,7 @@ def main(argv=None) -> int:
         return 0
     if a.attention:
         attention_figures(runs, out.parent / 'reproduction')
+        run_references(runs)
     elif not a.from_runs:
         for s in range(a.seeds):            # seed-major: every cell gets a first seed early
             for c in cells:
