@@ -30,7 +30,6 @@ the house map, hron_jax.envs.viz; for the choice task the scenes with the chosen
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import os
@@ -339,11 +338,7 @@ def main(argv=None, prog: str = 'eval.py') -> int:
                                    '--task / --distractors / --premap / --env-option')
             config = T.load_config(run_dir)
             if args.scene:   # held-out scenes: the model takes any node count of the vocabulary
-                if config.task == 'choice':
-                    raise T.UsageError('the choice task has no scene (drop --scene)')
-                if not os.path.isfile(args.scene):
-                    raise T.UsageError(f'scene file not found: {args.scene}')
-                config = dataclasses.replace(config, scene=os.path.abspath(args.scene))
+                config = T.config_from_args({'scene': args.scene}, base=config)
             policy_name = args.policy or 'trained'
         else:
             if args.policy in (None, 'trained'):

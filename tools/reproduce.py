@@ -209,9 +209,11 @@ def held_out_dir(run_dir: Path, scene: str) -> Path:
 EVAL_DIR = 'eval_trained'
 
 
-def eval_argv(run_dir: Path, episodes: int) -> list[str]:
+def eval_argv(run_dir: Path, episodes: int, out: Path | None = None, extra=()) -> list[str]:
+    """eval.py on a run dir, output to `out` (default RUN/eval_trained); extra: more options."""
     run_dir = Path(run_dir).resolve()
-    return ['python', 'eval.py', str(run_dir), '--episodes', str(episodes), '--out', str(run_dir / EVAL_DIR)]
+    return (['python', 'eval.py', str(run_dir), '--episodes', str(episodes), *extra, '--out',
+             str(out or run_dir / EVAL_DIR)])
 
 
 def eval_json(run_dir: Path) -> Path | None:
@@ -347,27 +349,28 @@ def _fmt_time(s):
 
 
 def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, float | None]:
-    """(text, seconds): training cost of a cell from measured env steps/s: its own runs, else its
-    --probe run, else (flagged as a proxy) the probe of the main model on the same task, else on
-    the exploratory task (the PPO update of the graph model dominates either way)."""
-    rate, src = steps_per_second(cell_runs(runs, cell)), 'its runs'
+    """(text, seconds): training cost of a cell from measured env steps/s, from the first source
+    that has a measurement: its own runs, its --probe, then (flagged as a proxy) the runs and the
+    probe of the main model on the same task (closest distractor / premap setting first), then the
+    exploratory main model's probe (the PPO update of the graph model dominates either way)."""
     mains = sorted((c for c in GRID if c.task == cell.task and c.model == 'rgbd_sg_attn' and c != cell),
                    key=lambda c: (c.distractors != cell.distractors, c.premap != cell.premap))
-    for main in mains:
-        if rate is None:
-            rate, src = steps_per_second(cell_runs(runs, main)), f'proxy: runs of {main.name}'
-    if rate is None:
-        for name, what in ((cell.name, '--probe'),
-                           (f'{cell.task}_rgbd_sg_attn', f'proxy: probe of {cell.task}_rgbd_sg_attn'),
-                           ('exploratory_rgbd_sg_attn', 'proxy: probe of exploratory_rgbd_sg_attn')):
-            probe = runs / '_probe' / name
-            if (probe / 'config.json').is_file():
-                rate, src = steps_per_second([probe]), what
-                side = probe / 'repro.json'
-                load = json.loads(side.read_text()).get('machine', {}).get('loadavg') if side.is_file() else None
-                if load:
-                    src += f', load average {load[0]:.1f}'
-                break
+    sources = [(cell, 'runs', 'its runs'), (cell, 'probe', '--probe')]
+    sources += [(m, kind, f'proxy: {kind} of {m.name}') for m in mains for kind in ('runs', 'probe')]
+    sources.append((next(c for c in GRID if c.name == 'exploratory_rgbd_sg_attn'), 'probe',
+                    'proxy: probe of exploratory_rgbd_sg_attn'))
+    rate = src = None
+    for c, kind, what in sources:
+        probe = runs / '_probe' / c.name
+        dirs = cell_runs(runs, c) if kind == 'runs' else [probe] * (probe / 'config.json').is_file()
+        rate, src = steps_per_second(dirs), what
+        if rate is not None:
+            side = probe / 'repro.json'
+            load = (json.loads(side.read_text()).get('machine', {}).get('loadavg')
+                    if kind == 'probe' and side.is_file() else None)
+            if load:
+                src += f', load average {load[0]:.1f}'
+            break
     if rate is None:
         return 'not measured', None
     steps = profile_steps(profile, cell.task)
@@ -631,7 +634,7 @@ def run_held_out(cell: Cell, run_dir: Path, episodes: int) -> None:
         out = held_out_dir(run_dir, scene)
         if (out / 'eval.json').is_file():
             continue
-        argv = eval_argv(run_dir, episodes)[:-2] + ['--scene', str(ROOT / scene), '--out', str(out)]
+        argv = eval_argv(run_dir, episodes, out, extra=('--scene', str(ROOT / scene)))
         t = run_logged(argv, run_dir.parent / f'{run_dir.name}.eval_{Path(scene).stem}.log')
         print(f'{cell.name} {run_dir.name} on {scene}: eval {t:.0f} s', flush=True)
 
