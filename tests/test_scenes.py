@@ -268,8 +268,9 @@ def _xml(body, material=True):
 
 
 @pytest.mark.parametrize("xml, words", [
-    ("<mujoco><worldbody><geom type='box' size='1 1 1'></worldbody>", ["MuJoCo cannot load"]),
-    (_xml('<geom type="box" size="1 1 0.1"/>'), ["no room bodies"]),
+    ('<mujoco><worldbody><geom type="box" size="1 1 1" bogus="1"/></worldbody></mujoco>',
+     ["MuJoCo cannot load", "unrecognized attribute: 'bogus'"]),
+    (_xml('<geom type="box" size="1 1 0.1"/>'), ["without HRON annotations"]),
     (_xml(_GOOD_ROOM + '<body name="furniture:table:0" pos="5 5 0"><geom type="box" size=".5 .5 .4"/></body>'),
      ["furniture:table:0", "outside every room"]),
     (_xml('<body name="room:garage:0"><geom type="box" pos="0 0 -0.025" size="2 2 0.025"/></body>'),
@@ -296,9 +297,56 @@ def test_errors_name_file_and_problem(tmp_path, xml, words):
     with pytest.raises(SceneError) as e:
         load_scene(p)
     msg = str(e.value)
-    assert str(p) in msg
+    assert str(p) in msg and "\n" not in msg
     for w in words:
         assert w in msg, msg
+
+
+_BOX_ROOM = os.path.join(ROOT, "tests", "scenes", "box_room.xml")
+
+
+def _truncated():
+    with open(_BOX_ROOM) as f:
+        return f.read()[:300]
+
+
+# What a new user may pass instead of a scene: (file content, or None for a directory / no file; the
+# key phrase of the error). Each must be one SceneError line, never MuJoCo's raw parser text.
+@pytest.mark.parametrize("content, phrase", [
+    ("hello world\nthis is not xml\n", "not an XML file (it starts with 'hello world')"),
+    (b"\x89PNG\r\n\x1a\n\x00\x00", "not an XML file"),
+    ("", "the file is empty"),
+    ("  \n", "the file is empty"),
+    (_truncated(), "broken XML (line 6, column 7: unclosed token)"),
+    ("<mujoco><worldbody><geom type='box' size='1 1 1'></worldbody>", "broken XML (line 1, column 52: mismatched tag)"),
+    ("<html><body>hi</body></html>", "root element is <html>, not <mujoco>"),
+    (_xml('<geom type="box" size="1 1 0.1"/>', material=False), "a MuJoCo model without HRON annotations"),
+    (_xml('<body name="furniture:table:0"><geom type="box" size=".5 .5 .4"/></body>', material=False),
+     "no room annotations: a scene needs at least one body named 'room:<category>:<k>'"),
+    (None, "is a directory, not a scene file"),
+    ("missing", "file not found"),
+], ids=["text", "binary", "empty", "blank", "truncated", "mismatched", "html", "plain_mujoco", "no_rooms",
+        "directory", "missing"])
+def test_bad_input_is_one_clear_scene_error(tmp_path, content, phrase):
+    p = tmp_path / "scene.xml"
+    if content is None:
+        p.mkdir()
+    elif isinstance(content, bytes):
+        p.write_bytes(content)
+    elif content != "missing":
+        p.write_text(content)
+    with pytest.raises(SceneError) as e:
+        load_scene(p)
+    msg = str(e.value)
+    assert isinstance(e.value, ValueError)  # CLIs catch ValueError and exit 2 with this line
+    assert msg.startswith(f"{p}: ") and "\n" not in msg, msg
+    assert phrase in msg, msg
+    assert "XML_ERROR" not in msg and "ParseXML" not in msg and "<material>" not in msg, msg
+
+
+def test_directory_error_names_its_scenes():
+    with pytest.raises(SceneError, match=r"pass one of its \.xml files \(house\.xml, "):
+        load_scene(SCENES)
 
 
 def test_nested_and_rotated_bodies_use_world_frame(tmp_path):
@@ -319,7 +367,7 @@ def test_nested_and_rotated_bodies_use_world_frame(tmp_path):
 def test_missing_file_and_fixture():
     with pytest.raises(SceneError, match="file not found"):
         load_scene("/nonexistent/scene.xml")
-    s = load_scene(os.path.join(ROOT, "tests", "scenes", "box_room.xml"))
+    s = load_scene(_BOX_ROOM)
     assert s.room_adjacency[0, 1] and len(s.goals) == 2
     assert s.room_floors.shape == (2, 2, 4) and s.room_floor_valid.tolist() == [[True, False], [True, True]]
     assert list(s.room_at([[3.0, 3.5], [1.0, 3.5], [-1.0, 0.0]])) == [1, -1, 0]

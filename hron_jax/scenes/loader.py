@@ -5,6 +5,11 @@ numpy tables (they become JAX constants in the simulator, sensors, tasks and gra
 World-frame positions come from `mj_forward` on a fresh MjData, so nested bodies and rotated
 geoms/sites are handled.
 
+Errors: every bad input raises `SceneError` (a ValueError, so CLIs that catch ValueError/OSError print
+it as one line) whose message is one line: the path, what is wrong, what to do. The file is checked in
+order: it exists and is a file, it is well-formed XML with a <mujoco> root, MuJoCo compiles it, it has
+HRON annotations and at least one room, then the per-element rules of docs/scene_format.md.
+
 Shapes (N instances = R rooms + F furniture + O objects, in that order; G geoms; S slots; D doors):
 - instance table: names (N,), node_type (N,) int32, category (N,) int32 class id,
   vocab_index (N,) int32, instance_room (N,) int32, body_id (N,), mocap_id (N,),
@@ -26,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import xml.etree.ElementTree as ET
 from typing import Any
 
 import mujoco
@@ -47,7 +53,8 @@ _FLOOR_TOL = 1e-4
 
 
 class SceneError(ValueError):
-    """A scene file that MuJoCo rejects or whose annotations are missing or inconsistent."""
+    """A scene path that is not a well-formed MJCF file, that MuJoCo rejects, or whose annotations are
+    missing or inconsistent. The message is one line: path, problem, fix."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -144,7 +151,8 @@ def room_at(room_floors, xy, xp=np):
 
 
 def _err(path, msg):
-    return SceneError(f"{path}: {msg}")
+    # MuJoCo's parser messages span lines; callers print the error as a single CLI line.
+    return SceneError(" ".join(f"{path}: {msg}".splitlines()))
 
 
 def _name(model, objtype, i):
@@ -171,13 +179,46 @@ def _geom_aabb_half(gtype, size, xmat):
     return a[:, 2] * size[1] + size[0]
 
 
-def _load_model(path):
+_SEE_FORMAT = "a scene is an MJCF <mujoco> XML file, see docs/scene_format.md"
+
+
+def _check_xml(path):
+    """Reject what is not a file or not well-formed MJCF before MuJoCo's raw parser sees it."""
+    if os.path.isdir(path):
+        xmls = sorted(f for f in os.listdir(path) if f.endswith(".xml"))[:3]
+        hint = f"pass one of its .xml files ({', '.join(xmls)})" if xmls else "pass an MJCF .xml scene file"
+        raise _err(path, f"is a directory, not a scene file; {hint}")
     if not os.path.exists(path):
-        raise _err(path, "file not found")
+        raise _err(path, "file not found; check the path (shipped scenes are in scenes/, e.g. scenes/house.xml)")
+    try:
+        with open(path, "rb") as f:
+            text = f.read()
+    except OSError as e:
+        raise _err(path, f"cannot read the file ({e.strerror}); check its permissions") from e
+    if not text.strip():
+        raise _err(path, f"the file is empty; {_SEE_FORMAT}")
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as e:
+        start = text.lstrip(b"\xef\xbb\xbf \t\r\n")
+        if not start.startswith(b"<"):
+            head = start.split(b"\n")[0][:40].decode("utf-8", "replace").strip()
+            raise _err(path, f"not an XML file (it starts with {head!r}); {_SEE_FORMAT}") from None
+        line, col = e.position
+        reason = str(e).split(":")[0]  # the rest repeats the position
+        raise _err(path, f"broken XML (line {line}, column {col + 1}: {reason}); fix the XML there, or "
+                         "regenerate the file if it was cut off") from None
+    if root.tag != "mujoco":
+        raise _err(path, f"root element is <{root.tag}>, not <mujoco>; {_SEE_FORMAT}")
+
+
+def _load_model(path):
+    _check_xml(path)
     try:
         return mujoco.MjModel.from_xml_path(path)
     except Exception as e:  # MuJoCo raises ValueError with the parser's message
-        raise _err(path, f"MuJoCo cannot load the file: {e}".strip()) from e
+        raise _err(path, f"MuJoCo cannot load the file: {str(e).strip()}; fix what it reports "
+                         "(see docs/scene_format.md)") from e
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
@@ -189,11 +230,6 @@ def load_scene(path: str | os.PathLike) -> Scene:
 
 def scene_from_model(model, path: str = "<model>") -> Scene:
     """Build the Scene tables from an already compiled MjModel (path only used in messages)."""
-    if model.nmat < 1:
-        raise _err(path, "no <material> defined; add one to <asset> (mjx.ray needs at least one)")
-    data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)
-
     # ---- annotated bodies -------------------------------------------------------------------
     rooms, furniture, objects = [], [], []  # (body id, name, category)
     for b in range(1, model.nbody):
@@ -218,8 +254,19 @@ def scene_from_model(model, path: str = "<model>") -> Scene:
             if model.body_mocapid[b] < 0:
                 raise _err(path, f"object {name!r} must be a mocap body (mocap=\"true\", child of worldbody)")
             objects.append(entry)
+    # Missing annotations come first: any later message (no material, ...) would send the author
+    # fixing the wrong thing.
+    if not (rooms or furniture or objects):
+        raise _err(path, "a MuJoCo model without HRON annotations: no body is named 'room:<category>:<k>', "
+                         "'furniture:<category>:<k>' or 'object:<category>:<k>'; annotate it as in "
+                         "docs/scene_format.md")
     if not rooms:
-        raise _err(path, "no room bodies; add bodies named 'room:<category>:<k>' whose box geoms are the floors")
+        raise _err(path, "no room annotations: a scene needs at least one body named 'room:<category>:<k>' "
+                         "whose box geoms are the floors, see docs/scene_format.md")
+    if model.nmat < 1:
+        raise _err(path, "no <material> defined; add one to <asset> (mjx.ray needs at least one)")
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
 
     instances = rooms + furniture + objects
     kinds = [V.ROOM] * len(rooms) + [V.FURNITURE_NODE] * len(furniture) + [V.OBJECT] * len(objects)
