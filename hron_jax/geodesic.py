@@ -60,7 +60,7 @@ order, so it propagates along an entire straight path segment at once, and any t
 directions share one of the four open half-planes. A round count of about (turns in the longest
 shortest path) / 2 + 1 results; every round relaxes every move, so Bellman-Ford's bound (rounds <=
 number of free cells) guarantees convergence.
-Timing (`python -m hron_jax.geodesic`, demo house 151 x 251 cells at 0.1 m, 100 targets, 2 busy
+Timing (`python -m hron_jax.bench geodesic`, demo house 151 x 251 cells at 0.1 m, 100 targets, 2 busy
 CPU cores): 4 rounds, ~1.0 s per 100 fields (stencil 48; stencil 32 is oddly slower, ~2.3 s),
 compile ~1-2 s, rasterisation 0.03 s; at 0.05 m (302 x 502) ~8.4 s.
 """
@@ -69,7 +69,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from fractions import Fraction
 from functools import partial
 
@@ -656,82 +655,3 @@ def oracle_action(field, grid: OccupancyGrid, xy, yaw, *, index=None, turn: floa
     act = jnp.where(jnp.abs(err) <= turn / 2 + 1e-4, ORACLE_FORWARD,
                     jnp.where(err > 0, ORACLE_LEFT, ORACLE_RIGHT))
     return jnp.where(ok & (here > 0), act, ORACLE_STOP).astype(jnp.int32)
-
-
-# ----------------------------------------------------------------------------------------------
-# Benchmark: python -m hron_jax.geodesic
-# ----------------------------------------------------------------------------------------------
-
-def _demo_house_xml(nx: int = 5, ny: int = 3, room: float = 5.0, wall: float = 0.1,
-                    door: float = 1.0, height: float = 2.5) -> str:
-    """A house-sized MJCF (nx x ny rooms of room x room metres) with one doorway in every interior
-    wall, offset from the centre so paths bend."""
-    geoms = [f'<geom type="box" size="{nx * room / 2} {ny * room / 2} 0.05" '
-             f'pos="{nx * room / 2} {ny * room / 2} -0.05"/>']
-    hz, half_w = height / 2, wall / 2
-
-    def wall_x(x0, x1, y):
-        if x1 > x0:
-            geoms.append(f'<geom type="box" size="{(x1 - x0) / 2} {half_w} {hz}" '
-                         f'pos="{(x0 + x1) / 2} {y} {hz}"/>')
-
-    def wall_y(y0, y1, x):
-        if y1 > y0:
-            geoms.append(f'<geom type="box" size="{half_w} {(y1 - y0) / 2} {hz}" '
-                         f'pos="{x} {(y0 + y1) / 2} {hz}"/>')
-
-    for k in range(ny + 1):  # horizontal walls, doors between rows
-        y = k * room
-        for i in range(nx):
-            x0, x1 = i * room, (i + 1) * room
-            if 0 < k < ny:
-                dc = x0 + (1.0 if (i + k) % 2 else room - 1.0 - door)
-                wall_x(x0, dc, y)
-                wall_x(dc + door, x1, y)
-            else:
-                wall_x(x0, x1, y)
-    for i in range(nx + 1):  # vertical walls
-        x = i * room
-        for k in range(ny):
-            y0, y1 = k * room, (k + 1) * room
-            if 0 < i < nx:
-                dc = y0 + (1.0 if (i + k) % 2 else room - 1.0 - door)
-                wall_y(y0, dc, x)
-                wall_y(dc + door, y1, x)
-            else:
-                wall_y(y0, y1, x)
-    body = "\n    ".join(geoms)
-    return (f'<mujoco><asset><material name="m"/></asset><worldbody>\n    {body}\n'
-            f'  </worldbody></mujoco>')
-
-
-def _benchmark(num_targets: int = 100, cell_size: float = 0.1, stencil: int = 48) -> None:
-    model = mujoco.MjModel.from_xml_string(_demo_house_xml())
-    t0 = time.perf_counter()
-    grid = occupancy_grid(model, config=GridConfig(cell_size=cell_size))
-    t_raster = time.perf_counter() - t0
-    rng = np.random.default_rng(0)
-    free_idx = np.argwhere(np.asarray(grid.free))
-    pick = free_idx[rng.choice(len(free_idx), num_targets, replace=False)]
-    targets = np.asarray(grid.cell_to_world(pick))
-    init = jax.vmap(lambda t: success_init(grid, t, 1.0))(jnp.asarray(targets))
-    fn = lambda s: distance_fields(grid.free, s, grid.cell_size, fine=grid.fine,  # noqa: E731
-                                   stencil=stencil, return_rounds=True)
-    t0 = time.perf_counter()
-    fn(init)[0].block_until_ready()
-    t_first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    d, rounds = fn(init)
-    d.block_until_ready()
-    t_run = time.perf_counter() - t0
-    print(f"grid {grid.shape} at {cell_size} m ({np.asarray(grid.free).mean():.0%} free), "
-          f"stencil {stencil}, {num_targets} targets")
-    print(f"rasterise {t_raster:.3f} s | first call (compile + run) {t_first:.2f} s | "
-          f"run {t_run:.2f} s ({1e3 * t_run / num_targets:.1f} ms/target) | "
-          f"rounds max {int(rounds.max())} mean {float(rounds.mean()):.1f}")
-
-
-if __name__ == "__main__":
-    import sys
-
-    _benchmark(stencil=int(sys.argv[1]) if len(sys.argv) > 1 else 48)
