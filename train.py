@@ -1,10 +1,11 @@
 """Train a HRON policy with PPO: `python train.py --task exploratory --num-envs 64` (see --help).
 
-Thin entry point; the logic (config, jitted program, checkpoints, logs) is hron_jax/training.py.
+Thin entry point: the CLI is hron_jax/cli.py, training hron_jax/training.py, the run config
+hron_jax/run_config.py.
 """
 import sys
 
-from hron_jax.training import main
+from hron_jax.cli import main
 
 if __name__ == '__main__':
     sys.exit(main(sys.argv[1:]))

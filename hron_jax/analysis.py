@@ -53,7 +53,7 @@ class Run:
     """A trained run ready for analysis. params: one seed's variables (no seed axis)."""
 
     run_dir: Path
-    config: Any            # hron_jax.training.TrainConfig
+    config: Any            # hron_jax.run_config.TrainConfig
     env: Any               # built like training, but without auto-reset (episodes end)
     network: Any
     params: Any
@@ -63,28 +63,23 @@ class Run:
     def env_variant(self, **overrides):
         """The run's env with some options changed (e.g. distractors=True); the model accepts any
         node count, so a policy can be probed on scenes it was not trained on."""
-        from hron_jax import training as T
-        nav = self.config.task != 'choice'
-        opts = dict(T.env_kwargs(self.config), **overrides)
-        if nav:
-            opts['auto_reset'] = False
-        from hron_jax.envs import make_env
-        return make_env(self.config.task, self.config.scene_path, **opts)
+        from hron_jax.run_config import build_env
+        return build_env(self.config, episodic=True, **overrides)
 
 
 def load_run(run_dir, step: int | None = None, seed_index: int = 0) -> Run:
     """Restore one seed's parameters of a train.py run (latest checkpoint unless `step`)."""
     import jax
-    from hron_jax import training as T
+    from hron_jax.run_config import build_env, build_network
+    from hron_jax.run_dir import load_config, restore_params
 
     run_dir = Path(run_dir).resolve()   # orbax restores from absolute paths only
-    config = T.load_config(run_dir)
-    nav = config.task != 'choice'
-    env = T.build_env(config, **({'auto_reset': False} if nav else {}))
-    network = T.build_network(config, env.num_actions)
+    config = load_config(run_dir)
+    env = build_env(config, episodic=True)
+    network = build_network(config, env.num_actions)
     if not network.config.use_graph:
         raise ValueError(f'{run_dir}: model {config.model!r} has no scene-graph branch to analyse')
-    params, step = T.restore_params(run_dir, config, env, network, step)
+    params, step = restore_params(run_dir, config, env, network, step)
     if not 0 <= seed_index < config.num_seeds:
         raise ValueError(f'seed_index {seed_index} out of range: the run has {config.num_seeds} seed(s)')
     # Device arrays, not numpy: the model may index parameters with traced values.
@@ -96,8 +91,8 @@ def train_command(run_dir, task: str = 'exploratory', model: str = 'rgbd_sg_attn
                   total_steps: int = 20480, extra: tuple[str, ...] = ()) -> list[str]:
     """argv of the train.py call that makes an analysis run (documented in the notebook)."""
     import sys
-    root = Path(__file__).resolve().parents[1]
-    return [sys.executable, str(root / 'train.py'), '--task', task, '--model', model,
+    from hron_jax.paths import REPO_ROOT
+    return [sys.executable, str(Path(REPO_ROOT) / 'train.py'), '--task', task, '--model', model,
             '--total-steps', str(total_steps), '--out', str(run_dir), '--no-progress', *extra]
 
 
@@ -172,67 +167,45 @@ def collect(run: Run, episodes: int = 4, max_steps: int | None = None, seed: int
     """Roll out `episodes` episodes of run's policy (of `env`, default run.env) and record the
     graph, attention and pooling weights at every step. Episode i starts from
     env.reset(fold_in(PRNGKey(seed), i)), as in eval.py. Actions are sampled unless `greedy`.
-    Navigation rollouts run max_steps (default the env's limit) steps and mark the steps after
-    the episode's end invalid."""
+    Rollouts run min(max_steps, the env's episode limit) steps (the limit when max_steps is None;
+    one for the choice task) and mark the steps after the episode's end invalid."""
     import jax
     import jax.numpy as jnp
     from hron_jax.models import attention_readout
+    from hron_jax.rollout import episode_ends, unroll
 
     env = env or run.env
     network, params = run.network, run.params
     cfg = network.config
-    nav = run.config.task != 'choice'
     key = jax.random.PRNGKey(seed)
     reset_keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(episodes))
     num_edges = int(jax.eval_shape(env.reset, key).obs['graph'].senders.shape[-1])
+    steps = min(int(max_steps or env.config.max_steps), env.config.max_steps)
 
-    def act(obs, k):
-        logits, _, att = attention_readout(network, params, obs)
+    def policy(state, k):
+        logits, _, att = attention_readout(network, params, state.obs)
         action = jnp.argmax(logits, -1) if greedy else jax.random.categorical(k, logits)
         alpha, pw = _split_attention(att, cfg.gnn_layers if cfg.gnn == 'hgt' else 0, num_edges)
-        return action.astype(jnp.int32), alpha, pw
+        return action.astype(jnp.int32), {'alpha': alpha, 'pool_weights': pw}
 
-    def graph_fields(obs):
-        g = obs['graph']
+    def record(state, action, extras, nxt):
+        obs, g = state.obs, state.obs['graph']
+        # Envs without an agent in a scene (choice) record a zero pose.
+        pose = env.agent_pose(state) if hasattr(env, 'agent_pose') else jnp.zeros(3)
         return dict(category=g.nodes['category'], node_type=g.nodes['node_type'],
                     node_mask=g.nodes['mask'], pos=g.nodes['pos'], senders=g.senders,
                     receivers=g.receivers, edge_type=g.edges['edge_type'], edge_mask=g.edges['mask'],
-                    goal_classes=obs['goal_classes'])
+                    goal_classes=obs['goal_classes'], pose=pose)
 
-    if nav:
-        steps = int(max_steps or env.config.max_steps)
+    def episode(k_reset):
+        state = env.reset(k_reset)
+        return state, unroll(env.step, state, policy, jax.random.fold_in(k_reset, 1), steps,
+                             record=record)[2]
 
-        def episode(k_reset):
-            state = env.reset(k_reset)
-
-            def body(carry, _):
-                state, rng = carry
-                rng, k = jax.random.split(rng)
-                action, alpha, pw = act(state.obs, k)
-                pose = env.agent_pose(state)
-                nxt = env.step(state, action)
-                out = dict(graph_fields(state.obs), alpha=alpha, pool_weights=pw, pose=pose,
-                           action=action, done=nxt.done, success=nxt.metrics['success'],
-                           spl=nxt.metrics['spl'])
-                return (nxt, rng), out
-            _, traj = jax.lax.scan(body, (state, jax.random.fold_in(k_reset, 1)), None, length=steps)
-            return state, traj
-        states, traj = jax.jit(jax.vmap(episode))(reset_keys)
-    else:
-        def episode(k_reset):
-            state = env.reset(k_reset)
-            action, alpha, pw = act(state.obs, jax.random.fold_in(k_reset, 1))
-            nxt = env.step(state, action)
-            out = dict(graph_fields(state.obs), alpha=alpha, pool_weights=pw,
-                       pose=jnp.zeros(3), action=action, done=nxt.done,
-                       success=nxt.metrics['success'], spl=nxt.metrics['spl'])
-            return state, jax.tree.map(lambda x: x[None], out)   # a [1]-step trajectory
-        states, traj = jax.jit(jax.vmap(episode))(reset_keys)
-
+    states, traj = jax.jit(jax.vmap(episode))(reset_keys)
     traj = jax.tree.map(np.asarray, jax.device_get(traj))
-    done = traj['done'] > 0.5                                        # [B, T]
-    end = np.where(done.any(-1), np.argmax(done, -1), done.shape[1] - 1)
-    valid = np.arange(done.shape[1])[None] <= end[:, None]
+    _, end = episode_ends(traj['done'])                               # [B]
+    valid = np.arange(traj['done'].shape[1])[None] <= end[:, None]
     last = lambda x: np.take_along_axis(x, end[:, None], 1)[:, 0]
     return Record(task=run.config.task, pooling=cfg.pooling,
                   category=traj['category'], node_type=traj['node_type'],
@@ -241,8 +214,8 @@ def collect(run: Run, episodes: int = 4, max_steps: int | None = None, seed: int
                   edge_mask=traj['edge_mask'].astype(bool), alpha=traj['alpha'],
                   pool_weights=traj['pool_weights'], goal_classes=traj['goal_classes'],
                   pose=traj['pose'], action=traj['action'], valid=valid,
-                  success=last(traj['success']), spl=last(traj['spl']), end=end,
-                  states=jax.device_get(states), env=env)
+                  success=last(traj['metrics']['success']), spl=last(traj['metrics']['spl']),
+                  end=end, states=jax.device_get(states), env=env)
 
 
 # ------------------------------------------------------------------------------------------------

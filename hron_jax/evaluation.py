@@ -30,7 +30,6 @@ the house map, hron_jax.envs.viz; for the choice task the scenes with the chosen
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -38,10 +37,17 @@ from pathlib import Path
 
 import numpy as np
 
-from hron_jax import training as T
+from hron_jax import cli
+from hron_jax.envs import TASKS
+from hron_jax.envs.base import EPISODE_METRICS
+from hron_jax.errors import CheckpointError, UsageError
+from hron_jax.rollout import episode_ends, random_policy, unroll
+from hron_jax.run_config import DEFAULT_TASK, build_env, build_network, run_label
+from hron_jax.run_dir import load_config, restore_params, write_json
+from hron_jax.training import FAST_COMPILE
 
 POLICIES = ('trained', 'oracle', 'random')
-EPISODE_KEYS = ('success', 'spl', 'episode_length', 'path_length', 'return')
+EPISODE_KEYS = EPISODE_METRICS     # the per-episode values evaluate returns and main writes
 
 
 # ------------------------------------------------------------------------------------------------
@@ -59,14 +65,12 @@ def model_policy(network, greedy: bool):
 
 
 def reference_policy(task: str, name: str):
-    import jax
-    import jax.numpy as jnp
-    if task == 'choice':
-        if name == 'oracle':
-            return lambda env, state, rng, params: state.inner.correct_action
-        return lambda env, state, rng, params: jax.random.randint(rng, (), 0, env.num_actions).astype(jnp.int32)
-    from hron_jax.envs.navigation import oracle_policy, random_policy
-    fn = oracle_policy if name == 'oracle' else random_policy
+    if name == 'random':
+        fn = random_policy
+    elif task == 'choice':
+        fn = lambda env, state, rng: state.inner.correct_action
+    else:
+        from hron_jax.envs.navigation import oracle_policy as fn
     return lambda env, state, rng, params: fn(env, state, rng)
 
 
@@ -86,40 +90,28 @@ def evaluate(env, policy, params, num_seeds: int, episodes: int, seed: int = 0,
     reset_keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(episodes))
     policy_keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.fold_in(key, 10**6), s))(
         jnp.arange(num_seeds))
-    nav = env.__class__.__name__ == 'NavigationEnv'
+    record = None
+    if hasattr(env, 'agent_pose'):      # navigation: the agent's path, for the trajectory plots
+        from hron_jax.envs.navigation import pose_record
+        record = pose_record(env)
 
-    if nav:
-        from hron_jax.envs.navigation import make_rollout
-        steps = env.config.max_steps
-
-        def one_seed(params, rng):
-            rollout = make_rollout(env, lambda e, s, k: policy(e, s, k, params), steps)
-            states = jax.vmap(env.reset)(reset_keys)
-            _, traj = jax.vmap(rollout)(states, jax.random.split(rng, episodes))
-            return states, traj
-    else:
-        def one_seed(params, rng):
-            states = jax.vmap(env.reset)(reset_keys)
-            keys = jax.random.split(rng, episodes)
-            actions = jax.vmap(lambda s, k: policy(env, s, k, params))(states, keys)
-            nxt = jax.vmap(env.step)(states, actions)
-            # One-step episodes as a [E, 1] trajectory.
-            traj = {'action': actions[:, None], 'done': nxt.done[:, None],
-                    'metrics': jax.tree.map(lambda x: x[:, None], nxt.metrics)}
-            return states, traj
+    def one_seed(params, rng):
+        act = lambda s, k: (policy(env, s, k, params), {})
+        episode = lambda state, k: unroll(env.step, state, act, k, env.config.max_steps,
+                                          record=record)[2]
+        states = jax.vmap(env.reset)(reset_keys)
+        return states, jax.vmap(episode)(states, jax.random.split(rng, episodes))
 
     run = jax.jit(jax.vmap(one_seed, in_axes=(None if params is None else 0, 0)))
     states, traj = run.lower(params, policy_keys).compile(compiler_options)(params, policy_keys)
     traj = jax.device_get(traj)
-    done = np.asarray(traj['done']) > 0.5                          # [S, E, T]
-    finished = done.any(-1)
-    end = np.where(finished, np.argmax(done, -1), done.shape[-1] - 1)   # index of the last step
+    finished, end = episode_ends(traj['done'])                      # [S, E]
     take = lambda x: np.take_along_axis(np.asarray(x), end[..., None], -1)[..., 0]
     out = {k: take(traj['metrics'][k]).astype(np.float64) for k in EPISODE_KEYS}
     out['finished'] = finished
     out['actions'] = np.asarray(traj['action'])
     out['end'] = end
-    if nav:
+    if record is not None:
         out['poses'] = np.asarray(traj['pose'])             # before every step [S, E, T, 3]
         out['last_pose'] = np.take_along_axis(               # after the episode's last step
             np.asarray(traj['final_pose']), end[..., None, None], 2)[:, :, 0]
@@ -165,23 +157,16 @@ def record_episode(env, policy, params, key, max_steps: int) -> dict:
     {'rgbd': f32[T, H, W, 4], 'action': i32[T], 'reward': f32[T]}, cut at the episode's end."""
     import jax
 
-    def body(carry, _):
-        state, rng = carry
-        rng, k = jax.random.split(rng)
-        a = policy(env, state, k, params)
-        nxt = env.step(state, a)
-        return (nxt, rng), {'rgbd': state.obs['rgbd'], 'action': a, 'reward': nxt.reward,
-                            'done': nxt.done}
-
     @jax.jit
     def run(key):
-        state = env.reset(key)
-        return jax.lax.scan(body, (state, jax.random.fold_in(key, 1)), None, length=max_steps)[1]
+        act = lambda s, k: (policy(env, s, k, params), {})
+        frames = lambda state, action, extras, nxt: {'rgbd': state.obs['rgbd']}
+        return unroll(env.step, env.reset(key), act, jax.random.fold_in(key, 1), max_steps,
+                      record=frames)[2]
 
-    out = jax.device_get(run(key))
-    done = np.asarray(out['done']) > 0.5
-    n = int(np.argmax(done)) + 1 if done.any() else max_steps
-    return {k: np.asarray(v)[:n] for k, v in out.items()}
+    traj = jax.device_get(run(key))
+    n = int(episode_ends(traj['done'])[1]) + 1
+    return {k: np.asarray(traj[k])[:n] for k in ('rgbd', 'action', 'reward', 'done')}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -281,7 +266,7 @@ def save_video(frames: dict, path: str, title: str = '', fps: int = 8) -> str:
 # ------------------------------------------------------------------------------------------------
 
 def build_parser(prog: str = 'eval.py') -> argparse.ArgumentParser:
-    p = T._Parser(prog=prog, description=(
+    p = cli.ArgumentParser(prog=prog, description=(
         'Evaluate a train.py run (SR / SPL over episodes and seeds, like the paper\'s tables) or a '
         'reference policy. Writes eval.md, eval.json and trajectories.png.'))
     p.add_argument('run', nargs='?', help='run directory, or RUN_DIR/checkpoints/<update>')
@@ -303,7 +288,7 @@ def build_parser(prog: str = 'eval.py') -> argparse.ArgumentParser:
     p.add_argument('--scene', help='scene MJCF; with a run: evaluate its policy on this scene instead '
                    'of the training one (held-out houses), output dir eval_<policy>_<mode>_<scene>')
     g = p.add_argument_group('env of a reference policy (without a run directory)')
-    g.add_argument('--task', choices=T.TASKS, default=None)
+    g.add_argument('--task', choices=TASKS, default=None)
     g.add_argument('--distractors', action='store_true')
     g.add_argument('--premap', action='store_true')
     g.add_argument('--env-option', action='append', metavar='NAME=VALUE')
@@ -318,60 +303,63 @@ def _resolve_run(path: str) -> tuple[Path, int | None]:
     if p.parent.name == 'checkpoints' and p.name.isdigit() and (p.parent.parent / 'config.json').is_file():
         return p.parent.parent, int(p.name)
     if not p.exists():
-        raise T.UsageError(f'{p}: no such run directory')
-    raise T.UsageError(f'{p}: neither a run directory (with config.json) nor RUN_DIR/checkpoints/<update>')
+        raise UsageError(f'{p}: no such run directory')
+    raise UsageError(f'{p}: neither a run directory (with config.json) nor RUN_DIR/checkpoints/<update>')
 
 
 def main(argv=None, prog: str = 'eval.py') -> int:
-    T.tune_malloc()
-    args = build_parser(prog).parse_args(argv)
+    cli.tune_malloc()
+    try:
+        args = build_parser(prog).parse_args(argv)
+    except SystemExit as e:   # --help, or a bad option (argparse has printed its one line)
+        return e.code
     log = lambda s: print(s, file=sys.stderr, flush=True)
     try:
-        if args.episodes < 1:
-            raise T.UsageError('--episodes must be >= 1')
+        for option, value, low in (('--episodes', args.episodes, 1), ('--num-seeds', args.num_seeds, 1),
+                                   ('--seed', args.seed, 0), ('--plots', args.plots, 0),
+                                   ('--step', args.step, 0)):
+            if value is not None and value < low:
+                raise UsageError(f'{option}: must be >= {low}, got {value}')
         if args.run:
             run_dir, step = _resolve_run(args.run)
             if args.step is not None:
                 step = args.step
             if args.task or args.distractors or args.premap or args.env_option:
-                raise T.UsageError('with a run directory the env comes from its config.json; drop '
+                raise UsageError('with a run directory the env comes from its config.json; drop '
                                    '--task / --distractors / --premap / --env-option')
-            config = T.load_config(run_dir)
+            config = load_config(run_dir)
             if args.scene:   # held-out scenes: the model takes any node count of the vocabulary
-                config = T.config_from_args({'scene': args.scene}, base=config)
+                config = cli.config_from_args({'scene': args.scene}, base=config)
             policy_name = args.policy or 'trained'
         else:
             if args.policy in (None, 'trained'):
-                raise T.UsageError('give a run directory, or --policy oracle|random with --task')
-            opts = {'task': args.task or T.DEFAULT_TASK, 'distractors': args.distractors,
+                raise UsageError('give a run directory, or --policy oracle|random with --task')
+            opts = {'task': args.task or DEFAULT_TASK, 'distractors': args.distractors,
                     'premap': args.premap}
             if args.scene:
                 opts['scene'] = args.scene
             if args.env_option:
                 opts['env_option'] = args.env_option
-            config = T.config_from_args(opts)
+            config = cli.config_from_args(opts)
             run_dir, step, policy_name = None, None, args.policy
-        T.setup_compile_cache(args.compile_cache)
+        cli.setup_compile_cache(args.compile_cache)
         import absl.logging
         absl.logging.set_verbosity(absl.logging.ERROR)
         nav = config.task != 'choice'
         try:
-            env = T.build_env(config, **({'auto_reset': False} if nav else {}))
+            env = build_env(config, episodic=True)
         except (ValueError, TypeError, OSError) as e:
-            raise T.UsageError(f'cannot build the {config.task} env: {e}') from None
+            raise UsageError(f'cannot build the {config.task} env: {e}') from None
         if policy_name == 'trained':
-            network = T.build_network(config, env.num_actions)
-            params, step = T.restore_params(run_dir, config, env, network, step)
+            network = build_network(config, env.num_actions)
+            params, step = restore_params(run_dir, config, env, network, step)
             policy, num_seeds = model_policy(network, args.greedy), config.num_seeds
         else:
             params, num_seeds = None, args.num_seeds
             policy = reference_policy(config.task, policy_name)
-    except T.UsageError as e:
-        print(f'{prog}: error: {e}', file=sys.stderr)
-        return 2
-    except T.CheckpointError as e:
-        print(f'{prog}: error: {e}', file=sys.stderr)
-        return 1
+    except (UsageError, CheckpointError) as e:
+        print(cli.error_line(prog, e), file=sys.stderr)
+        return 2 if isinstance(e, UsageError) else 1
 
     mode = 'greedy' if args.greedy else 'sampled'
     if policy_name == 'oracle':
@@ -386,10 +374,10 @@ def main(argv=None, prog: str = 'eval.py') -> int:
         f'{args.episodes} episodes' + (f', checkpoint {run_dir}/checkpoints/{step}' if step is not None else ''))
     fast = args.fast_compile or config.fast_compile
     result = evaluate(env, policy, params, num_seeds, args.episodes, args.seed,
-                      dict(T.FAST_COMPILE) if fast else None)
+                      dict(FAST_COMPILE) if fast else None)
     summary = summarize(result)
     row = dict(task=config.task, distractors=config.distractors,
-               model=T.run_label(config) if policy_name == 'trained' else '-',
+               model=run_label(config) if policy_name == 'trained' else '-',
                policy=policy_name, mode=mode, summary=summary)
     table = markdown_table([row])
     (out / 'eval.md').write_text(table + '\n')
@@ -398,7 +386,7 @@ def main(argv=None, prog: str = 'eval.py') -> int:
                   model=config.model if policy_name == 'trained' else None, policy=policy_name,
                   mode=mode, eval_seed=args.seed, config=config.to_dict(), summary=summary,
                   per_episode=per_episode)
-    T._write_json(out / 'eval.json', record)
+    write_json(out / 'eval.json', record)
     if args.plots > 0:
         plot_trajectories(env, result, out / 'trajectories.png', args.plots)
     if args.video is not None:

@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
-from . import graph_types as T
+from . import graph_types as GT
 from .scenes import vocabulary as V
 from .scenes.loader import Scene, room_at
 
@@ -64,7 +64,6 @@ class GraphConfig:
     max_edges: Optional[int] = None  # E_MAX; None = the scene's edge capacity
     min_pixels: int = 2              # pixels of one instance in one frame to discover it
     detect_range: float = 6.0        # m; farther pixels do not count (a detector's range)
-    premap: bool = False             # rooms and furniture discovered from the start
 
 
 class Placement(NamedTuple):
@@ -89,7 +88,7 @@ class Placement(NamedTuple):
 
 
 # vocabulary relation index -> (forward edge type, reverse edge type)
-_RELATION_EDGES = np.array([[T.ON_TOP, T.REV_ON_TOP], [T.INSIDE, T.REV_INSIDE], [T.UNDER, T.REV_UNDER]],
+_RELATION_EDGES = np.array([[GT.ON_TOP, GT.REV_ON_TOP], [GT.INSIDE, GT.REV_INSIDE], [GT.UNDER, GT.REV_UNDER]],
                            np.int32)
 assert V.RELATIONS == ("onTop", "inside", "under")
 
@@ -97,8 +96,10 @@ assert V.RELATIONS == ("onTop", "inside", "under")
 class GraphBuilder:
     """Static tables of one scene + pure functions `reset`, `update`, `graph`."""
 
-    def __init__(self, scene: Scene, config: GraphConfig = GraphConfig()):
+    def __init__(self, scene: Scene, config: GraphConfig = GraphConfig(), premap: bool = False):
+        """premap: rooms and furniture are discovered from the start (the paper's pre-mapping)."""
         self.config = config
+        self.premap = premap
         n_real = scene.num_nodes
         self.num_objects = scene.num_objects
         self.object_offset = scene.num_rooms + scene.num_furniture
@@ -122,18 +123,18 @@ class GraphBuilder:
         half[self.object_offset:] = V.OBJECT_HALF[scene.vocab_index[self.object_offset:]]
         self.static_half = jnp.asarray(pad(half))
         self.instance_room = jnp.asarray(pad(scene.instance_room.astype(np.int32), -1))
-        self.is_room = self.real & (self.node_type == T.ROOM)
-        self.is_object = self.real & (self.node_type == T.OBJECT)
-        self.premap_mask = self.real & (self.node_type != T.OBJECT)
+        self.is_room = self.real & (self.node_type == GT.ROOM)
+        self.is_object = self.real & (self.node_type == GT.OBJECT)
+        self.premap_mask = self.real & (self.node_type != GT.OBJECT)
         self.room_floors = jnp.asarray(scene.room_floors.astype(np.float32))
 
         # Static edges: furniture <-> its room, room <-> adjacent room.
         s, r, t = [], [], []
         for f in range(scene.num_rooms, self.object_offset):
             room = int(scene.instance_room[f])
-            s += [f, room]; r += [room, f]; t += [T.IN_ROOM, T.REV_IN_ROOM]
+            s += [f, room]; r += [room, f]; t += [GT.IN_ROOM, GT.REV_IN_ROOM]
         for a, b in zip(*np.nonzero(np.triu(scene.room_adjacency, 1))):
-            s += [a, b]; r += [b, a]; t += [T.ROOM_CONNECTED] * 2
+            s += [a, b]; r += [b, a]; t += [GT.ROOM_CONNECTED] * 2
         self.num_static_edges = len(s)
         e_cap = self.num_static_edges + 4 * self.num_objects
         e_max = config.max_edges or e_cap
@@ -149,7 +150,7 @@ class GraphBuilder:
     def reset(self, placement: Placement, pose: jax.Array) -> jax.Array:
         """Discovered mask bool[N_MAX] at the start of an episode (before the first frame)."""
         del placement
-        disc = self.premap_mask if self.config.premap else jnp.zeros_like(self.real)
+        disc = self.premap_mask if self.premap else jnp.zeros_like(self.real)
         return disc | self._agent_room(pose)
 
     def update(self, discovered: jax.Array, placement: Placement, pose: jax.Array,
@@ -193,8 +194,8 @@ class GraphBuilder:
         room = jnp.maximum(room, 0)
         dyn_s = jnp.stack([obj, furn, obj, room], -1).reshape(-1)
         dyn_r = jnp.stack([furn, obj, room, obj], -1).reshape(-1)
-        dyn_t = jnp.stack([rel[:, 0], rel[:, 1], jnp.full_like(obj, T.IN_ROOM),
-                           jnp.full_like(obj, T.REV_IN_ROOM)], -1).reshape(-1)
+        dyn_t = jnp.stack([rel[:, 0], rel[:, 1], jnp.full_like(obj, GT.IN_ROOM),
+                           jnp.full_like(obj, GT.REV_IN_ROOM)], -1).reshape(-1)
         rel_ok = placement.active & has_furn
         dyn_ok = jnp.stack([rel_ok, rel_ok, room_ok, room_ok], -1).reshape(-1)
 

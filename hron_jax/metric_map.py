@@ -53,7 +53,6 @@ class MapConfig:
     cell: float = 0.23        # m, the paper's resolution
     crop: int = 32            # M: egocentric crop side in cells (32 * 0.23 = 7.4 m)
     max_height: float = 2.5   # m; heights are clipped to [0, max_height]
-    premap: bool = False      # start from the static scene seen from above
     egocentric: bool = True   # observe an egocentric crop; False: the global map + agent heading
 
 
@@ -64,12 +63,14 @@ _MM = 1000.0  # heights stored in millimetres
 class MetricMap:
     """Static grid of one scene + pure functions `reset`, `update`, `observe`."""
 
-    def __init__(self, scene: Scene, camera: CameraConfig, config: MapConfig = MapConfig()):
+    def __init__(self, scene: Scene, camera: CameraConfig, config: MapConfig = MapConfig(),
+                 premap: bool = False):
+        """premap: start from the static scene seen from above (the paper's pre-mapping)."""
         self.config, self.camera = config, camera
         lo, hi = scene.bounds[0, :2], scene.bounds[1, :2]
         self.origin = np.asarray(lo, np.float32)
         self.shape = tuple(int(math.ceil(v)) for v in (hi - lo) / config.cell)  # (nx, ny)
-        self.premap_key = jnp.asarray(self._static_topdown(scene)) if config.premap else None
+        self.premap_key = jnp.asarray(self._static_topdown(scene)) if premap else None
 
     def _static_topdown(self, scene: Scene) -> np.ndarray:
         """Key table of the highest static geom top over each cell (see the module docstring)."""

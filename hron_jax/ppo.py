@@ -13,9 +13,10 @@ env: any hron_jax.envs.base.Env (one env, no batch axis); it is wrapped in AutoR
 network: a flax module, ``network.apply(params, obs) -> (logits f32[B, A], value f32[B] or [B, 1])``
     on a batch of observations (every obs leaf with a leading [B] axis).
 
-One update = a rollout of num_steps steps of num_envs envs (lax.scan over steps), GAE, then
-update_epochs passes over num_minibatches shuffled minibatches (lax.scan x lax.scan) of the clipped
-PPO objective + clipped value loss - entropy bonus, with global-norm gradient clipping and Adam.
+One update = a rollout of num_steps steps of num_envs envs (hron_jax.rollout.unroll of the vmapped
+env step), GAE, then update_epochs passes over num_minibatches shuffled minibatches (lax.scan x
+lax.scan) of the clipped PPO objective + clipped value loss - entropy bonus, with global-norm
+gradient clipping and Adam.
 
 Termination vs truncation (as in Brax, but exact): an env step that truncates (time limit) is done,
 so the value of the next obs (already the reset obs) is not used; instead the rollout evaluates the
@@ -24,10 +25,11 @@ what a self-resetting env renders on demand) and GAE bootstraps from it.
 That extra forward pass sits in a lax.cond on "any env truncated", so it costs nothing in the steps
 where no env truncates (under vmap over seeds the cond becomes a select and always runs).
 
-metrics (one entry per update, each f32[n_updates]): 'return', 'success', 'spl', 'path_length',
-'episode_length' are means over the episodes completed during that update's rollout (NaN when none
-completed), 'episodes' their count, 'reward' the mean per-step reward, 'env_steps' the cumulative
-number of env steps, and the loss terms averaged over epochs and minibatches.
+metrics (one entry per update, each f32[n_updates]): the episode metrics (envs.base.EPISODE_METRICS:
+'success', 'spl', 'episode_length', 'path_length', 'return') are means over the episodes completed
+during that update's rollout (NaN when none completed), 'episodes' their count, 'reward' the mean
+per-step reward, 'env_steps' the cumulative number of env steps, and the loss terms averaged over
+epochs and minibatches.
 
 Everything is deterministic given the rng: chunked updates give the same result as one-shot training.
 """
@@ -42,7 +44,9 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from hron_jax.envs.base import AutoResetWrapper
+from hron_jax.envs.base import EPISODE_METRICS, AutoResetWrapper
+from hron_jax.errors import ConfigError
+from hron_jax.rollout import unroll
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,15 +66,17 @@ class PPOConfig:
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     normalize_advantages: bool = True  # per minibatch
-    seed: int = 0
 
     def __post_init__(self):
+        if min(self.num_envs, self.num_steps, self.num_minibatches) < 1:
+            raise ConfigError('num_envs' if self.num_envs < 1 else 'num_steps' if self.num_steps < 1
+                              else 'num_minibatches', 'must be >= 1')
         if self.batch_size % self.num_minibatches:
-            raise ValueError(f'num_envs * num_steps = {self.batch_size} is not divisible by '
-                             f'num_minibatches = {self.num_minibatches}')
+            raise ConfigError('num_minibatches', f'must divide the rollout num_envs * num_steps = '
+                              f'{self.batch_size}, got {self.num_minibatches}')
         if self.num_updates < 1:
-            raise ValueError(f'total_timesteps = {self.total_timesteps} is less than one rollout '
-                             f'({self.batch_size} steps)')
+            raise ConfigError('total_timesteps', f'must be at least one rollout (num_envs * '
+                              f'num_steps = {self.batch_size} steps), got {self.total_timesteps}')
 
     @property
     def batch_size(self) -> int:
@@ -113,9 +119,6 @@ class PPO(NamedTuple):
     train: Callable         # rng -> (RunnerState, metrics)
     evaluate: Callable      # (params, rng, num_steps: static int, greedy: static bool) -> metrics
     config: PPOConfig
-
-
-EPISODE_METRICS = ('return', 'success', 'spl', 'path_length', 'episode_length')
 
 
 def compute_gae(reward, value, done, truncation, final_value, last_value, gamma, gae_lambda):
@@ -176,24 +179,23 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
                            update=jnp.zeros((), jnp.int32))
 
     def rollout(params, env_state, rng, num_steps, greedy=False):
-        def step(carry, _):
-            env_state, rng = carry
-            rng, k_act = jax.random.split(rng)
-            logits, value = apply(params, env_state.obs)
-            action = (jnp.argmax(logits, -1) if greedy else jax.random.categorical(k_act, logits))
+        def policy(state, key):
+            logits, value = apply(params, state.obs)
+            action = (jnp.argmax(logits, -1) if greedy else jax.random.categorical(key, logits))
             log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], -1)[:, 0]
-            nxt = v_step(env_state, action)
+            return action, {'log_prob': log_prob, 'value': value}
+
+        def record(state, action, extras, nxt):
+            # Bootstrap value of truncated episodes, computed only in steps where one truncates.
             truncation = nxt.info['truncation']
             final_value = jax.lax.cond(
                 jnp.any(truncation > 0),
                 lambda: apply(params, v_final_obs(nxt))[1] * truncation,
                 lambda: jnp.zeros_like(truncation))
-            tr = Transition(obs=env_state.obs, action=action, log_prob=log_prob, value=value,
-                            reward=nxt.reward, done=nxt.done, truncation=truncation,
-                            final_value=final_value, metrics=nxt.metrics)
-            return (nxt, rng), tr
-        (env_state, rng), traj = jax.lax.scan(step, (env_state, rng), None, length=num_steps)
-        return env_state, rng, traj
+            return {'obs': state.obs, 'final_value': final_value}
+
+        env_state, rng, traj = unroll(v_step, env_state, policy, rng, num_steps, record=record)
+        return env_state, rng, Transition(**traj)
 
     def loss_fn(params, mb: Transition, adv, target):
         logits, value = apply(params, mb.obs)

@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from hron_jax import graph_types as T
+from hron_jax import graph_types as GT
 from hron_jax.graph_builder import GraphBuilder, GraphConfig, Placement
 from hron_jax.scenes import load_scene
 from hron_jax.scenes import vocabulary as V
@@ -91,11 +91,11 @@ def expected_edges(scene, placement, discovered):
     out = set()
     for f in range(scene.num_rooms, scene.num_rooms + scene.num_furniture):
         r = int(scene.instance_room[f])
-        out |= {(f, r, T.IN_ROOM), (r, f, T.REV_IN_ROOM)}
+        out |= {(f, r, GT.IN_ROOM), (r, f, GT.REV_IN_ROOM)}
     for a, b in zip(*np.nonzero(scene.room_adjacency)):
-        out.add((int(a), int(b), T.ROOM_CONNECTED))
+        out.add((int(a), int(b), GT.ROOM_CONNECTED))
     o0 = scene.num_rooms + scene.num_furniture
-    fwd = {0: (T.ON_TOP, T.REV_ON_TOP), 1: (T.INSIDE, T.REV_INSIDE), 2: (T.UNDER, T.REV_UNDER)}
+    fwd = {0: (GT.ON_TOP, GT.REV_ON_TOP), 1: (GT.INSIDE, GT.REV_INSIDE), 2: (GT.UNDER, GT.REV_UNDER)}
     for i in range(scene.num_objects):
         if not bool(placement.active[i]):
             continue
@@ -106,7 +106,7 @@ def expected_edges(scene, placement, discovered):
             r = int(scene.instance_room[f])
         else:
             r = int(scene.room_at(np.asarray(placement.pos[i, :2])))
-        out |= {(o, r, T.IN_ROOM), (r, o, T.REV_IN_ROOM)}
+        out |= {(o, r, GT.IN_ROOM), (r, o, GT.REV_IN_ROOM)}
     return {e for e in out if disc[e[0]] and disc[e[1]]}
 
 
@@ -126,7 +126,7 @@ def check_graph(scene, gb, g, placement, discovered):
     assert set(live) == expected_edges(scene, placement, discovered)
     for s, r, _ in live:
         assert mask[s] and mask[r]
-    assert len(T.check_graph_types(g.nodes["node_type"], g.senders, g.receivers, g.edges["edge_type"],
+    assert len(GT.check_graph_types(g.nodes["node_type"], g.senders, g.receivers, g.edges["edge_type"],
                                    g.edges["mask"])) == 0
     dead = ~np.asarray(g.edges["mask"])
     for x in (g.senders, g.receivers, g.edges["edge_type"]):
@@ -222,10 +222,10 @@ def test_seen_table_is_discovered_with_its_features(sym, fns):
         check_graph(scene, gb, g, placement, disc)
         n = g.nodes
         assert int(n["category"][table]) == V.class_id("furniture", "table")
-        assert int(n["node_type"][table]) == T.FURNITURE
+        assert int(n["node_type"][table]) == GT.FURNITURE
         np.testing.assert_allclose(n["pos"][table], want, atol=1e-5)
         np.testing.assert_allclose(n["size"][table], scene.aabb_half[table], atol=1e-6)
-        assert set(live_edges(g)) == {(table, 0, T.IN_ROOM), (0, table, T.REV_IN_ROOM)}
+        assert set(live_edges(g)) == {(table, 0, GT.IN_ROOM), (0, table, GT.REV_IN_ROOM)}
 
     # Features follow the agent: from a generic pose, pos = R(-yaw) (centre - agent) for every node.
     pose = jnp.asarray([0.7, -2.1, 2.0], jnp.float32)
@@ -288,11 +288,11 @@ def test_edges_between_rooms_and_floor_objects():
         return gb.update(disc, placement, pose, jnp.asarray(inst), jnp.ones((4, 4)))
 
     steps = [(a1, set()),                                    # its room is unknown yet: no edge
-             (living, {(kitchen, living, T.ROOM_CONNECTED), (living, kitchen, T.ROOM_CONNECTED),
-                       (a1, living, T.IN_ROOM), (living, a1, T.REV_IN_ROOM)}),
-             (a0, {(a0, kitchen, T.IN_ROOM), (kitchen, a0, T.REV_IN_ROOM)}),  # table unknown yet
-             (table, {(table, kitchen, T.IN_ROOM), (kitchen, table, T.REV_IN_ROOM),
-                      (a0, table, T.UNDER), (table, a0, T.REV_UNDER)})]
+             (living, {(kitchen, living, GT.ROOM_CONNECTED), (living, kitchen, GT.ROOM_CONNECTED),
+                       (a1, living, GT.IN_ROOM), (living, a1, GT.REV_IN_ROOM)}),
+             (a0, {(a0, kitchen, GT.IN_ROOM), (kitchen, a0, GT.REV_IN_ROOM)}),  # table unknown yet
+             (table, {(table, kitchen, GT.IN_ROOM), (kitchen, table, GT.REV_IN_ROOM),
+                      (a0, table, GT.UNDER), (table, a0, GT.REV_UNDER)})]
     have = set()
     for node, new in steps:
         disc = see(disc, node)
@@ -385,7 +385,7 @@ def test_node_order_permutation(sym, tmp_path):
 
 def test_premap_contents_and_episode_edges(sym, fns):
     scene, placement = sym["scene"], sym["placement"]
-    gb = GraphBuilder(scene, GraphConfig(min_pixels=2, detect_range=3.0, premap=True))
+    gb = GraphBuilder(scene, GraphConfig(min_pixels=2, detect_range=3.0), premap=True)
     update, graph = fns(gb)
     pose = jnp.asarray([2.2, -1.5, np.pi / 2], jnp.float32)   # in front of table:1 (apple on top)
     disc = gb.reset(placement, pose)
@@ -399,7 +399,7 @@ def test_premap_contents_and_episode_edges(sym, fns):
     g = graph(disc, placement, pose)
     check_graph(scene, gb, g, placement, disc)
     apple, t1 = scene.index_of("object:apple:0"), scene.index_of("furniture:table:1")
-    assert {(apple, t1, T.ON_TOP), (t1, apple, T.REV_ON_TOP), (apple, 0, T.IN_ROOM)} <= set(live_edges(g))
+    assert {(apple, t1, GT.ON_TOP), (t1, apple, GT.REV_ON_TOP), (apple, 0, GT.IN_ROOM)} <= set(live_edges(g))
 
     # A new episode (reset) puts the apple under table:0: its edges change with the placement.
     other = make_placement(scene, {"object:apple:0": ("furniture:table:0", "under")})
@@ -409,14 +409,14 @@ def test_premap_contents_and_episode_edges(sym, fns):
     disc = disc.at[apple].set(True)                            # as if seen
     g = graph(disc, other, pose)
     check_graph(scene, gb, g, other, disc)
-    assert {(apple, t0, T.UNDER), (t0, apple, T.REV_UNDER)} <= set(live_edges(g))
+    assert {(apple, t0, GT.UNDER), (t0, apple, GT.REV_UNDER)} <= set(live_edges(g))
     assert not {e for e in live_edges(g) if t1 in e[:2] and apple in e[:2]}
     np.testing.assert_allclose(g.nodes["pos"][apple, 2], np.asarray(other.pos)[apple - scene.num_rooms
                                                                               - scene.num_furniture, 2])
 
 
 def test_jit_vmap_batch_matches_single_envs(sym, fns):
-    scene, gb, placement = sym["scene"], sym["gb"], sym["placement"]
+    gb, placement = sym["gb"], sym["placement"]
     poses = jnp.asarray([[-2.2, -1.5, np.pi / 2], [2.2, -1.5, np.pi / 2], [0.0, 0.3, np.pi]], jnp.float32)
     frames = [sym["frame"](p) for p in poses]
     inst = jnp.stack([f.instance for f in frames])

@@ -201,7 +201,7 @@ def test_global_view(box):
 def test_premap_contents():
     scene = load_scene(SYMMETRIC)
     cam = CameraConfig(width=32, height=32)
-    mm = MetricMap(scene, cam, MapConfig(premap=True))
+    mm = MetricMap(scene, cam, MapConfig(), premap=True)
     key = np.asarray(mm.reset())
     assert key.shape == mm.shape
     c, h = cls(key), height(key)
@@ -236,7 +236,7 @@ def test_premap_contents():
     # What the camera sees is never above the premap (it holds the highest surface of each cell),
     # and an apple placed on a table rises above it there.
     cam = CameraConfig(width=64, height=64)
-    mm = MetricMap(scene, cam, MapConfig(premap=True))
+    mm = MetricMap(scene, cam, MapConfig(), premap=True)
     render = Camera(scene.model, cam, scene.geom_instance, scene.geom_class).render_geoms
     d = mujoco.MjData(scene.model)
     apple = scene.index_of("object:apple:0")

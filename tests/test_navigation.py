@@ -2,7 +2,7 @@
 goal satisfiability, distractors, oracle SR / SPL, determinism, vmap == single env, make_env.
 
 Compiles are the cost here (MJX step on CPU), so every test shares a few jitted functions built in
-module-scoped fixtures: for each env one `run(episode, rng, actions)` = reset_to + a scan of steps
+module-scoped fixtures: for each env one `run(episode, rng, actions)` = reset_to + rollout.unroll
 whose actions are scripted where >= 0 and the oracle's where -1, single and vmapped.
 """
 import jax
@@ -15,6 +15,7 @@ from hron_jax import goals
 from hron_jax.envs import TASKS, make_env
 from hron_jax.envs import navigation as N
 from hron_jax.envs.choice import ChoiceEnv
+from hron_jax.rollout import episode_ends, unroll
 from hron_jax.scenes import vocabulary as V
 from hron_jax.sim import BACKWARD, FORWARD, STOP
 
@@ -24,12 +25,13 @@ EXPLORE_T = 220
 
 
 def _make_run(env, num_steps):
-    rollout = N.make_rollout(env, N.oracle_policy, num_steps)
+    oracle = lambda state, k: (N.oracle_policy(env, state, k), {})
 
     def run(episode, rng, actions):
         k_env, k_pol = jax.random.split(rng)
         state0 = env.reset_to(episode, k_env)
-        last, traj = rollout(state0, k_pol, actions)
+        last, _, traj = unroll(env.step, state0, oracle, k_pol, num_steps,
+                               record=N.pose_record(env), actions=actions)
         return state0, last, traj
     return run
 
@@ -220,7 +222,7 @@ def _slot_cats(env):
 
 def _check_placements(env, eps, directed_task):
     """Geometry of every active object against its slot, goal satisfaction, distractors."""
-    scene, t = env.scene, env.tables
+    scene = env.scene
     rel, fcat, rcat = _slot_cats(env)
     goal_rows = {tuple(g) for g in scene.goals.tolist()}
     off = scene.num_rooms + scene.num_furniture
@@ -346,8 +348,18 @@ def _check_spl(traj):
     np.testing.assert_allclose(traj['metrics']['spl'][succ], d0 / np.maximum(d0, p), rtol=1e-5)
 
 
+def first_episode_metrics(traj) -> dict:
+    """Per env (leading batch axis [B, T]), the metrics of its first finished episode (of its last
+    step where none finished), plus 'finished' (bool[B])."""
+    finished, end = episode_ends(traj['metrics']['episode_done'])
+    out = {k: np.take_along_axis(np.asarray(v), end[:, None], 1)[:, 0]
+           for k, v in traj['metrics'].items()}
+    out['finished'] = finished
+    return out
+
+
 def test_directed_oracle(directed_oracle):
-    m = N.first_episode_metrics(directed_oracle)
+    m = first_episode_metrics(directed_oracle)
     _report('directed', m)
     assert m['finished'].all()
     assert m['success'].mean() == 1.0
@@ -357,7 +369,7 @@ def test_directed_oracle(directed_oracle):
 
 def test_exploratory_oracle(explore):
     traj = _np(explore.oracle_batch(0, 16))
-    m = N.first_episode_metrics(traj)
+    m = first_episode_metrics(traj)
     _report('exploratory', m)
     assert m['finished'].all()
     assert m['success'].mean() == 1.0
@@ -388,9 +400,3 @@ def test_vmap_matches_single_env(directed, directed_oracle):
         np.testing.assert_array_equal(traj['done'], directed_oracle['done'][i])
         np.testing.assert_allclose(traj['reward'], directed_oracle['reward'][i], atol=1e-4)
         np.testing.assert_allclose(traj['metrics']['spl'], directed_oracle['metrics']['spl'][i], atol=1e-5)
-
-
-def test_random_policy_range(directed):
-    keys = jax.random.split(jax.random.PRNGKey(3), 200)
-    a = jax.vmap(lambda k: N.random_policy(directed.env, None, k))(keys)
-    assert set(np.asarray(a).tolist()) == set(range(5))

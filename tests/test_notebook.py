@@ -7,7 +7,6 @@ that it produced its four figures and its attention summary. Budget: under 3 min
 at load average ~1 and 173 s at ~7 on the shared 2-core development machine.
 """
 import json
-import os
 from pathlib import Path
 
 import pytest

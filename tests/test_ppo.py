@@ -1,14 +1,15 @@
 """PPO: GAE with truncation, the gymnax adapter, learning, vmapped seeds, chunked == one-shot."""
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import struct
 
 from hron_jax import graph_types as GT
-from hron_jax.envs.base import AutoResetWrapper, GymnaxWrapper
+from hron_jax.envs.base import AutoResetWrapper, initial_state, next_state
 from hron_jax.envs.choice import ChoiceConfig, ChoiceEnv
 from hron_jax.ppo import PPOConfig, compute_gae, make_ppo, make_train
 from hron_jax.scenes import vocabulary as V
@@ -96,6 +97,71 @@ class Corridor:
         obs0, s0 = self._reset(key, params)
         s2 = jax.tree.map(lambda a, b: jnp.where(d, a, b), s0, s2)
         return jnp.where(d, obs0, obs), s2, r, d, info
+
+
+# --- an adapter from gymnax-style envs to hron_jax.envs.base (only these tests use one) -----------
+def _f32(x):
+    return jnp.asarray(x, jnp.float32)
+
+
+@struct.dataclass
+class GymnaxInner:
+    env_state: Any
+    rng: jax.Array
+
+
+class GymnaxWrapper:
+    """Adapts a gymnax-style env to the hron_jax.envs.base API.
+
+    The wrapped env provides ``reset(key, params) -> (obs, env_state)`` and
+    ``step(key, env_state, action, params) -> (obs, env_state, reward, done, info)``. If it also has
+    ``reset_env`` / ``step_env`` (a real gymnax Environment, whose ``step`` auto-resets and so loses
+    the final observation), those non-resetting versions are used instead; wrap the result in
+    AutoResetWrapper (hron_jax.ppo does that for you).
+
+    Termination vs truncation: gymnax folds its time limit into ``done``. The step is counted as a
+    truncation when ``info['truncation']`` is set, or when ``max_steps`` is given here and reached
+    without ``done`` (give the gymnax env a larger internal limit in that case). ``info['success']``,
+    ``info['spl']`` and ``info['path_length']`` are passed through to metrics when present.
+    """
+
+    def __init__(self, env, params=None, max_steps: int | None = None, num_actions: int | None = None):
+        self.env = env
+        self.params = params
+        self.max_steps = max_steps
+        if num_actions is None:
+            num_actions = getattr(env, 'num_actions', None)
+        if num_actions is None:
+            num_actions = int(env.action_space(params).n)
+        self.num_actions = int(num_actions)
+        self._reset = getattr(env, 'reset_env', env.reset)
+        self._step = getattr(env, 'step_env', env.step)
+
+    def reset(self, rng):
+        rng, sub = jax.random.split(rng)
+        obs, env_state = self._reset(sub, self.params)
+        return initial_state(obs, GymnaxInner(env_state=env_state, rng=rng))
+
+    def step(self, state, action):
+        rng, sub = jax.random.split(state.inner.rng)
+        obs, env_state, reward, done, info = self._step(sub, state.inner.env_state, action, self.params)
+        info = info or {}
+        done = _f32(done)
+        trunc_flag = _f32(info['truncation']) if 'truncation' in info else jnp.zeros((), jnp.float32)
+        terminated = done * (1.0 - trunc_flag)
+        new = next_state(
+            state, obs, GymnaxInner(env_state=env_state, rng=rng), reward, terminated,
+            success=info.get('success', 0.0), spl=info.get('spl'),
+            path_length=info.get('path_length', 0.0), max_steps=self.max_steps)
+        # An env-reported truncation ends the episode too (next_state only knows max_steps).
+        truncation = jnp.maximum(new.info['truncation'], trunc_flag * done)
+        done = jnp.maximum(new.done, truncation)
+        info_out = dict(new.info, truncation=truncation)
+        metrics = dict(new.metrics, episode_done=done)
+        return new.replace(done=done, info=info_out, metrics=metrics)
+
+    def observation_example(self):
+        return self.reset(jax.random.PRNGKey(0)).obs
 
 
 def test_gae_keeps_truncation_apart():

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from hron_jax import training as T
+from hron_jax.cli import config_from_args
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,9 +30,9 @@ def fake_eval(d: Path, sr: float, spl: float):
 def fake_run(d: Path, seed: int, sr: float, spl: float, distractors=True, task='choice'):
     """A run dir as train.py + eval.py leave it (only the files the report reads)."""
     d.mkdir(parents=True)
-    cfg = T.config_from_args(dict(task=task, model='rgbd_sg_attn', distractors=distractors,
-                                  seed=seed, total_steps=1024 if task == 'choice' else 4096,
-                                  model_option=['hidden=32']))
+    cfg = config_from_args(dict(task=task, model='rgbd_sg_attn', distractors=distractors,
+                                seed=seed, total_steps=1024 if task == 'choice' else 4096,
+                                model_option=['hidden=32']))
     (d / 'config.json').write_text(json.dumps({'config': cfg.to_dict(), 'meta': {}}))
     rows = [dict(update=u, env_steps=256 * u, wall_time=2.0 * u, steps_per_s=128.0, success=s,
                  success_std=0.0, **{'return': s}) for u, s in ((2, 0.5), (4, sr))]

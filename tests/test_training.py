@@ -21,7 +21,11 @@ import numpy as np
 import pytest
 
 from hron_jax import evaluation
-from hron_jax import training as T
+from hron_jax.cli import config_from_args, main as train_main, tune_malloc
+from hron_jax.errors import NonFiniteError
+from hron_jax.run_config import TrainConfig, make_config
+from hron_jax.run_dir import load_config, read_metrics, restore_runner
+from hron_jax.training import Trainer, programs
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_MODEL = ['hidden=16', 'heads=1', 'gnn_layers=1', 'goal_fc=16,16,16', 'fusion_fc=32,32,32',
@@ -31,8 +35,8 @@ TINY = dict(task='choice', model='rgbd_sg_attn', num_envs=8, num_steps=2, epochs
             lr=1e-3, log_every=2, checkpoint_every=4, model_option=TINY_MODEL, fast_compile=True)
 
 
-def tiny_config(updates: int, **kw) -> T.TrainConfig:
-    return T.config_from_args(dict(TINY, total_steps=BATCH * updates, **kw))
+def tiny_config(updates: int, **kw):
+    return config_from_args(dict(TINY, total_steps=BATCH * updates, **kw))
 
 
 def tiny_argv(updates: int) -> list[str]:
@@ -45,7 +49,7 @@ def tiny_argv(updates: int) -> list[str]:
 
 
 def train(config, run_dir, **kw):
-    trainer = T.Trainer(config, run_dir, progress=False, log=lambda s: None, **kw)
+    trainer = Trainer(config, run_dir, progress=False, log=lambda s: None, **kw)
     try:
         runner = trainer.run()
     finally:
@@ -98,20 +102,20 @@ def test_resume_after_interruption_is_exact(reference, tmp_path):
     run_dir = tmp_path / 'run'
     # Train 6 of 8 updates (chunks of 2, checkpoints at 4 and at exit = 6), then "kill" the
     # process after update 6 but before its checkpoint landed: drop checkpoint 6.
-    trainer = T.Trainer(config, run_dir, progress=False, log=lambda s: None)
+    trainer = Trainer(config, run_dir, progress=False, log=lambda s: None)
     trainer.run(max_updates=6)
     trainer.close()
     assert sorted(int(p.name) for p in (run_dir / 'checkpoints').iterdir()) == [0, 4, 6]
     shutil.rmtree(run_dir / 'checkpoints' / '6')
 
-    resumed = train(T.load_config(run_dir), run_dir, resume=True)
+    resumed = train(load_config(run_dir), run_dir, resume=True)
     assert int(resumed.update[0]) == 8
     assert_trees_equal(resumed.params, ref.params)          # bitwise
     assert_trees_equal(resumed.opt_state, ref.opt_state)
     assert_trees_equal(resumed.env_state, ref.env_state)
     np.testing.assert_array_equal(resumed.rng, ref.rng)
     # The log was rewound to update 4 and continued: same rows as the uninterrupted run.
-    rows, ref_rows = T.read_metrics(run_dir), T.read_metrics(ref_dir)
+    rows, ref_rows = read_metrics(run_dir), read_metrics(ref_dir)
     assert [r['update'] for r in rows] == [2, 4, 6, 8]
     assert [r['success'] for r in rows] == [r['success'] for r in ref_rows]
     csv_lines = (run_dir / 'metrics.csv').read_text().strip().splitlines()
@@ -120,35 +124,83 @@ def test_resume_after_interruption_is_exact(reference, tmp_path):
     assert list((run_dir / 'tb').glob('events.out.tfevents.*'))
 
 
-def test_resume_config_mismatch_and_bad_checkpoint(reference, tmp_path, capsys):
+def test_resume_config_mismatch(reference, tmp_path, capsys):
     _, ref_dir, _ = reference
     run_dir = tmp_path / 'copy'
     shutil.copytree(ref_dir, run_dir)
-    rc = T.main(['--resume', str(run_dir), '--lr', '0.5', '--num-envs', '16',
+    rc = train_main(['--resume', str(run_dir), '--lr', '0.5', '--num-envs', '16',
                  '--compile-cache', 'none'])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and 'ppo.lr' in err and 'ppo.num_envs' in err and 'Traceback' not in err
     # An existing run is not overwritten without --resume.
-    assert T.main(tiny_argv(8) + ['--out', str(run_dir), '--compile-cache', 'none']) == 2
+    assert train_main(tiny_argv(8) + ['--out', str(run_dir), '--compile-cache', 'none']) == 2
     assert 'already holds a run' in capsys.readouterr().err
     # A checkpoint that does not fit the config (another model size) names the path.
     cfg = json.loads((run_dir / 'config.json').read_text())
-    cfg['config']['model_options'] = [[k, 32 if k == 'hidden' else v]
-                                      for k, v in cfg['config']['model_options']]
+    cfg['config']['network']['hidden'] = 32
     (run_dir / 'config.json').write_text(json.dumps(cfg))
-    rc = T.main(['--resume', str(run_dir), '--compile-cache', 'none'])
+    rc = train_main(['--resume', str(run_dir), '--compile-cache', 'none'])
     err = capsys.readouterr().err.strip()
     assert rc == 1 and str(run_dir / 'checkpoints' / '8') in err and 'does not match' in err
-    # A damaged one too.
-    shutil.rmtree(run_dir)
-    shutil.copytree(ref_dir, run_dir)
-    for f in (run_dir / 'checkpoints' / '8').rglob('*'):
+
+
+def damage(step_dir: Path) -> None:
+    for f in step_dir.rglob('*'):
         if f.is_file() and f.stat().st_size > 1000:
             f.write_bytes(f.read_bytes()[:100])
-    rc = T.main(['--resume', str(run_dir), '--compile-cache', 'none'])
-    err = capsys.readouterr().err.strip()
-    assert rc == 1 and str(run_dir / 'checkpoints' / '8') in err and 'delete this step' in err
-    assert len(err.splitlines()) == 1
+
+
+def test_damaged_newest_checkpoint_falls_back_to_an_intact_one(reference, tmp_path, capsys):
+    config, ref_dir, ref = reference
+    run_dir = tmp_path / 'damaged'
+    shutil.copytree(ref_dir, run_dir)
+    # Checkpoints 0, 4, 8: the newest is damaged; resuming falls back to 4, moves 8 aside (kept),
+    # and recomputes updates 5-8 exactly.
+    damage(run_dir / 'checkpoints' / '8')
+    config = load_config(run_dir)
+    messages = []
+    trainer = Trainer(config, run_dir, resume=True, progress=False, log=messages.append)
+    assert trainer.update == 4
+    assert any('falling back to checkpoint 4' in m for m in messages), messages
+    assert (run_dir / 'corrupt_checkpoints' / '8').is_dir()
+    try:
+        resumed = trainer.run()
+    finally:
+        trainer.close()
+    assert_trees_equal(resumed.params, ref.params)
+    assert [r['update'] for r in read_metrics(run_dir)] == [2, 4, 6, 8]
+    # With every checkpoint damaged there is nothing to fall back to: one line, exit 1.
+    for step in (0, 4, 8):
+        damage(run_dir / 'checkpoints' / str(step))
+    rc = train_main(['--resume', str(run_dir), '--compile-cache', 'none'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and 'Traceback' not in '\n'.join(err)
+    assert err[-1].startswith('train.py: error:') and 'no older checkpoint' in err[-1]
+
+
+def test_nan_stops_the_run_and_keeps_the_last_finite_checkpoint(reference, tmp_path):
+    config, _, _ = reference
+    run_dir = tmp_path / 'nan'
+    trainer = Trainer(config, run_dir, progress=False, log=lambda s: None)
+    try:
+        trainer.run(max_updates=2)
+        good = trainer.runner
+        # Inject a NaN into one weight (as an overflowing update would leave it).
+        ws, treedef = jax.tree.flatten(good.params)
+        ws[0] = ws[0].at[(0,) * ws[0].ndim].set(np.nan)
+        trainer.runner = good.replace(params=jax.tree.unflatten(treedef, ws))
+        with pytest.raises(NonFiniteError, match='at update 3 '):
+            trainer.run()
+        assert trainer.update == 2
+    finally:
+        trainer.close()
+    # The exit path checkpointed update 2 (the state the NaN entered into was never taken); it is
+    # finite, and the metrics log ends at update 2.
+    assert sorted(int(p.name) for p in (run_dir / 'checkpoints').iterdir()) == [0, 2]
+    restored, step = restore_runner(run_dir, programs(config).abstract)
+    assert step == 2
+    assert all(np.isfinite(x).all() for x in leaves(restored.params))
+    assert [r['update'] for r in read_metrics(run_dir)] == [2]
 
 
 # --- seeds and devices: one sharded, multi-seed train.py run -------------------------------------
@@ -172,14 +224,14 @@ def seed1(tmp_path_factory):
 
 def test_vmapped_seeds_differ_and_match_single_runs(reference, seed1, sharded_two_seeds):
     _, _, ref = reference
-    config = T.load_config(sharded_two_seeds)
+    config = load_config(sharded_two_seeds)
     assert config.num_seeds == 2 and config.seed == 0
-    two, _ = T.restore_runner(sharded_two_seeds, T.programs(config).abstract)
+    two, _ = restore_runner(sharded_two_seeds, programs(config).abstract)
     for i, single in enumerate((ref, seed1)):
         assert max_diff(jax.tree.map(lambda x: x[i:i + 1], two.params), single.params) < 1e-6
     assert max_diff(jax.tree.map(lambda x: x[:1], two.params),
                     jax.tree.map(lambda x: x[1:], two.params)) > 1e-3
-    row = T.read_metrics(sharded_two_seeds)[-1]
+    row = read_metrics(sharded_two_seeds)[-1]
     assert row['seeds'] == 2 and len(row['per_seed']['success']) == 2
     assert row['success'] == pytest.approx(np.mean(row['per_seed']['success']))
 
@@ -188,8 +240,8 @@ def test_sharded_run_matches_unsharded(reference, sharded_two_seeds):
     _, _, ref = reference
     meta = json.loads((sharded_two_seeds / 'config.json').read_text())['meta']
     assert len(meta['devices']) == 2
-    config = T.load_config(sharded_two_seeds)
-    runner, step = T.restore_runner(sharded_two_seeds, T.programs(config).abstract)
+    config = load_config(sharded_two_seeds)
+    runner, step = restore_runner(sharded_two_seeds, programs(config).abstract)
     assert step == 8
     assert max_diff(jax.tree.map(lambda x: x[:1], runner.params), ref.params) < 1e-6
     # The restore put the env state back onto this process's single device.
@@ -211,7 +263,7 @@ def test_sigterm_checkpoints_and_resume_continues(tmp_path, xla_cache, sharded_t
     full = popen(tmp_path / 'uninterrupted')   # the reference, meanwhile
     deadline = time.time() + 200
     while time.time() < deadline and proc.poll() is None:
-        if len(T.read_metrics(run_dir)) >= 1:    # training has started
+        if len(read_metrics(run_dir)) >= 1:    # training has started
             break
         time.sleep(0.02)
     assert proc.poll() is None, proc.communicate()[1][-2000:]
@@ -222,18 +274,18 @@ def test_sigterm_checkpoints_and_resume_continues(tmp_path, xla_cache, sharded_t
     steps = sorted(int(p.name) for p in (run_dir / 'checkpoints').iterdir())
     stopped = steps[-1]
     assert steps[0] == 0 and 0 < stopped < updates and stopped % 2 == 0   # at a chunk boundary
-    assert T.read_metrics(run_dir)[-1]['update'] == stopped
+    assert read_metrics(run_dir)[-1]['update'] == stopped
 
     r = run_cli('train.py', ['--resume', str(run_dir), '--no-progress'], xla_cache, devices=2)
     assert r.returncode == 0, r.stderr[-2000:]
     assert f'resumed {run_dir} at update {stopped}' in r.stderr
-    rows = T.read_metrics(run_dir)
+    rows = read_metrics(run_dir)
     assert [x['update'] for x in rows] == list(range(2, updates + 1, 2))
     # Bitwise the same final state as the uninterrupted run.
     assert full.wait(timeout=200) == 0, full.communicate()[1][-2000:]
-    abstract = T.programs(T.load_config(run_dir)).abstract
-    final, step = T.restore_runner(run_dir, abstract)
-    ref, ref_step = T.restore_runner(tmp_path / 'uninterrupted', abstract)
+    abstract = programs(load_config(run_dir)).abstract
+    final, step = restore_runner(run_dir, abstract)
+    ref, ref_step = restore_runner(tmp_path / 'uninterrupted', abstract)
     assert step == ref_step == updates
     assert_trees_equal(final, ref)
 
@@ -245,7 +297,7 @@ BAD_CLI = [
     (['--task', 'directed', '--scene', 'scenes/no_such_scene.xml'], 1, 'scene file not found'),
     (['--task', 'choice', '--num-envs', '7'], 2, 'not divisible by the 2 local devices'),
     (['--task', 'choice', '--num-envs', '6', '--num-steps', '1', '--minibatches', '4'], 1,
-     'not divisible by num_minibatches'),
+     '--minibatches: must divide the rollout'),
 ]
 
 
@@ -264,6 +316,63 @@ def test_bad_cli_input_is_one_clear_line(tmp_path, xla_cache):
         assert needle in err and err.startswith('train.py: error:'), (argv, err)
         assert len(err.splitlines()) == 1, (argv, err)
         assert not (tmp_path / f'never{i}').exists()
+
+
+# Every option with values a user could get wrong: zero, negative, wrong type, out of range,
+# cross-field (minibatches that do not divide the rollout, heads that do not divide hidden).
+BAD_VALUES = {
+    '--num-envs': ['0', '-5', 'abc', '2.5'], '--total-steps': ['0', '-1', '10', 'x'],
+    '--seed': ['-1', 'abc'], '--num-seeds': ['0', '-2'], '--log-every': ['0'],
+    '--checkpoint-every': ['0', '-1'], '--keep-checkpoints': ['0'], '--num-steps': ['0', '-3'],
+    '--epochs': ['0'], '--minibatches': ['0', '-1', '3'], '--lr': ['0', '-1', 'nan', 'inf', 'abc'],
+    '--gamma': ['-0.1', '1.5', 'nan'], '--gae-lambda': ['2'], '--clip-eps': ['0', '-0.2'],
+    '--ent-coef': ['-0.01'], '--vf-coef': ['-1'], '--max-grad-norm': ['0'],
+    '--task': ['navigate'], '--model': ['resnet'],
+    '--env-option': ['max_distractors=-1', 'image_size=0', 'nonsense=1', 'noequals',
+                     'max_distractors=abc'],
+    '--model-option': ['hidden=0', 'heads=3', 'cnn_fc=16,0,16', 'gnn=gcn', 'hidden=x'],
+}
+NAV_BAD_VALUES = {   # fields of the navigation env, dotted into its sub-configs
+    '--env-option': ['max_steps=0', 'camera.width=0', 'success_distance=-1', 'camera.vfov_deg=190',
+                     'camera.nope=1', 'num_distractors=-2'],
+}
+
+
+def bad_cases():
+    for task, table in (('choice', BAD_VALUES), ('directed', NAV_BAD_VALUES)):
+        for option, values in table.items():
+            for value in values:
+                yield pytest.param(task, option, value, id=f'{task} {option} {value}')
+
+
+@pytest.mark.parametrize('task,option,value', list(bad_cases()))
+def test_every_option_rejects_bad_values_in_one_line(task, option, value, tmp_path, capsys):
+    argv = ['--task', task] if option != '--task' else []
+    rc = train_main(argv + [option, value, '--out', str(tmp_path / 'never'), '--compile-cache',
+                            'none', '--no-progress'])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, (option, value, err)
+    assert len(err.splitlines()) == 1 and err.startswith('train.py: error:'), err
+    name = value.split('=')[0] if option.endswith('-option') and '=' in value else ''
+    assert option in err and name in err, err     # it names what to fix
+    assert not (tmp_path / 'never').exists()
+
+
+def test_config_json_of_the_flat_format_is_upgraded():
+    """config.json files written before the typed tree (flat env_options / model_options) load
+    as the same config the new CLI builds."""
+    old = {'task': 'exploratory', 'model': 'rgbd_sg', 'scene': 'scenes/house.xml', 'distractors': True,
+           'premap': True, 'env_options': [['image_size', 8], ['max_steps', 40]],
+           'model_options': [['hidden', 16], ['cnn_fc', [16, 16, 16]]],
+           'ppo': dict(vars(make_config('exploratory').ppo), seed=3, num_envs=4), 'seed': 3,
+           'num_seeds': 1, 'log_every': 1, 'checkpoint_every': 20, 'keep_checkpoints': 3,
+           'fast_compile': False}
+    new = config_from_args(dict(task='exploratory', model='rgbd_sg', distractors=True, premap=True,
+                                num_envs=4, seed=3, env_option=['image_size=8', 'max_steps=40'],
+                                model_option=['hidden=16', 'cnn_fc=16,16,16']))
+    assert TrainConfig.from_dict(old) == new
+    assert new.env.camera.width == new.env.camera.height == 8 and new.env.premap and new.distractors
+    assert new.network.pooling == 'mean' and new.network.hidden == 16
 
 
 # --- eval ----------------------------------------------------------------------------------------
@@ -289,18 +398,18 @@ def test_eval_writes_table(reference, tmp_path, xla_cache):
 
 # --- scenes in run dirs, held-out evaluation --------------------------------------------------------
 def test_scene_paths_are_repo_relative_and_resolve_anywhere(tmp_path):
-    inside = T.TrainConfig(task='exploratory', scene=str(ROOT / 'scenes' / 'house.xml'))
+    inside = make_config('exploratory', overrides={'scene': str(ROOT / 'scenes' / 'house.xml')})
     assert inside.scene == 'scenes/house.xml'      # config.json survives moving the repository
     assert inside.scene_path == str(ROOT / 'scenes' / 'house.xml')
-    assert T.TrainConfig.from_dict(inside.to_dict()) == inside
+    assert TrainConfig.from_dict(inside.to_dict()) == inside
     outside = tmp_path / 'my_house.xml'
-    cfg = T.TrainConfig(task='exploratory', scene=str(outside))
+    cfg = make_config('exploratory', overrides={'scene': str(outside)})
     assert cfg.scene == str(outside) and cfg.scene_path == str(outside)
 
 
 def test_eval_on_a_held_out_scene(tmp_path):
     """eval.py RUN --scene OTHER evaluates the run's policy in a house it never saw."""
-    config = T.config_from_args(dict(
+    config = config_from_args(dict(
         task='exploratory', model='rgbd_sg_attn', num_envs=2, num_steps=2, epochs=1, minibatches=1,
         total_steps=4, log_every=1, checkpoint_every=1, fast_compile=True, env_option=['image_size=8'],
         model_option=TINY_MODEL + ['cnn_fc=16,16,16'], scene=str(ROOT / 'scenes' / 'house.xml')))
@@ -316,7 +425,7 @@ def test_eval_on_a_held_out_scene(tmp_path):
     for k in ('success', 'spl'):
         assert 0.0 <= res['summary'][k]['mean'] <= 1.0
     # The training scene is untouched in the run's own config.
-    assert T.load_config(run_dir).scene == 'scenes/house.xml'
+    assert load_config(run_dir).scene == 'scenes/house.xml'
     assert evaluation.main([str(run_dir), '--scene', 'scenes/no_such_scene.xml']) == 2
 
 
@@ -336,4 +445,4 @@ def test_tune_malloc_applies_on_glibc():
     import platform
     if platform.libc_ver()[0] != 'glibc':
         pytest.skip('not a glibc system')
-    assert T.tune_malloc() is True
+    assert tune_malloc() is True

@@ -18,7 +18,7 @@ persistent XLA cache makes seeds 1 and 2 skip compilation), and a single-seed ru
 construction identical to seed i of a multi-seed one (hron_jax.training). --from-runs reads any
 run dir layout it finds under RUNS/<cell>/ (a multi-seed run counts with all its seeds).
 
-Profiles: 'paper' = the task defaults of hron_jax.training (paper model: HGT hidden 128, 2 heads,
+Profiles: 'paper' = the task defaults of hron_jax.run_config (paper model: HGT hidden 128, 2 heads,
 3 layers; choice 200 k env steps, navigation 1.5 M); 'cpu' = what fits a session on the 2-core
 development machine (choice: HGT hidden 32, 20 480 env steps per seed; navigation: the paper
 model, directed 131 072 env steps per seed = 32 PPO updates, exploratory 32 768 = 8 updates, i.e.
@@ -248,7 +248,7 @@ def run_logged(argv: list[str], log: Path) -> float:
 # ------------------------------------------------------------------------------------------------
 
 def _rows(run_dir: Path) -> list[dict]:
-    from hron_jax.training import read_metrics
+    from hron_jax.run_dir import read_metrics
     return read_metrics(run_dir)
 
 
@@ -302,14 +302,22 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
             'train_wall_s': float(np.mean(train_wall)) if train_wall else None,
             'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
             'steps_per_s': steps_per_second(cell_runs(runs, cell)),
-            'model_options': c0.get('model_options', []), 'num_envs': c0['ppo']['num_envs'],
+            'model_options': model_options(c0), 'num_envs': c0['ppo']['num_envs'],
             'meta': configs[0].get('meta', {}), 'machine': machines[0] if machines else None,
             'loads': loads}
 
 
+def model_options(config: dict) -> list[tuple]:
+    """(field, value) of a run's network that differ from its variant's defaults."""
+    from hron_jax.run_config import TrainConfig, config_diff, make_config
+    cfg = TrainConfig.from_dict(config)
+    diff = config_diff(make_config(cfg.task, cfg.model), cfg)
+    return [(k.split('.', 1)[1], b) for k, (_, b) in diff.items() if k.startswith('network.')]
+
+
 def curve_rows(run_dirs: list[Path], key: str = 'success') -> list[dict]:
     """Learning curve over seeds: per env-step row, mean / std over the runs' per-chunk means
-    (rows of hron_jax.training's plot_learning_curves)."""
+    (rows of hron_jax.metrics_log's plot_learning_curves)."""
     per_run = [{r['env_steps']: r for r in _rows(d)} for d in run_dirs]
     steps = sorted(set().union(*[set(p) for p in per_run])) if per_run else []
     out = []
@@ -379,7 +387,7 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
 
 
 def plot_curves(runs: Path, cells: list[Cell], path: Path, title: str) -> bool:
-    from hron_jax.training import plot_learning_curves
+    from hron_jax.metrics_log import plot_learning_curves
     curves = {}
     for c in cells:
         dirs = cell_runs(runs, c)
@@ -641,12 +649,12 @@ def run_held_out(cell: Cell, run_dir: Path, episodes: int) -> None:
 
 def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
     """A short run of a cell at the paper config (a few updates) to measure env steps/s."""
-    from hron_jax import training as T
+    from hron_jax.run_config import make_config
     out = runs / '_probe' / cell.name
     if (out / 'config.json').is_file():
         print(f'probe {cell.name}: exists ({out})')
         return
-    cfg = T.config_from_args({'task': cell.task})
+    cfg = make_config(cell.task)
     steps = cfg.ppo.batch_size * updates
     argv = train_argv(cell, 0, out, 'paper', extra=['--total-steps', str(steps), '--log-every', '1'])
     out.parent.mkdir(parents=True, exist_ok=True)

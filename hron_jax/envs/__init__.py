@@ -1,12 +1,13 @@
 """The three HRON tasks behind one factory.
 
-    env = make_env('choice' | 'directed' | 'exploratory', scene=None, **options)
+    config = env_config('choice' | 'directed' | 'exploratory', **options)   # typed, hashable
+    env = make_env(task, scene=None, config=None, **options)
 
 choice: hron_jax.envs.choice.ChoiceEnv; options are ChoiceConfig fields; no scene.
 directed / exploratory: hron_jax.envs.navigation.NavigationEnv; scene is a path or a loaded Scene
 (default scenes/symmetric_room.xml and scenes/house.xml of this repository); options are NavConfig
 fields, plus `image_size=S` as a shortcut for a square S x S camera (other camera settings:
-`camera=CameraConfig(...)`).
+`camera=CameraConfig(...)`). TASKS / NAV_TASKS / DEFAULT_SCENES are the one home of those names.
 """
 from __future__ import annotations
 
@@ -15,46 +16,56 @@ import os
 
 from hron_jax.envs.base import AutoResetWrapper, Env, EnvState
 from hron_jax.envs.choice import ChoiceConfig, ChoiceEnv
+from hron_jax.paths import SCENE_DIR
 
-TASKS = ('choice', 'directed', 'exploratory')
-_SCENE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-                          'scenes')
+NAV_TASKS = ('directed', 'exploratory')
+TASKS = ('choice',) + NAV_TASKS
 DEFAULT_SCENES = {
-    'directed': os.path.join(_SCENE_DIR, 'symmetric_room.xml'),
-    'exploratory': os.path.join(_SCENE_DIR, 'house.xml'),
+    'directed': os.path.join(SCENE_DIR, 'symmetric_room.xml'),
+    'exploratory': os.path.join(SCENE_DIR, 'house.xml'),
 }
 
 
-def _config(cls, options: dict, what: str):
-    names = {f.name for f in dataclasses.fields(cls)}
+def env_config(task: str, **options):
+    """The task's config (ChoiceConfig, or NavConfig with its task set) with `options` applied
+    (field names; `image_size=S` sets a square S x S camera)."""
+    if task not in TASKS:
+        raise ValueError(f'unknown task {task!r}; valid tasks: {", ".join(TASKS)}')
+    if 'task' in options:
+        raise TypeError("pass the task as the first argument, not as an option")
+    if task == 'choice':
+        return _replace(ChoiceConfig(), options, 'the choice task')
+    from hron_jax.envs.navigation import NavConfig   # deferred: MuJoCo / MJX
+    options = dict(options)
+    size = options.pop('image_size', None)
+    config = _replace(NavConfig(task=task), options, f'the {task} task')
+    if size is not None:
+        config = dataclasses.replace(config, camera=dataclasses.replace(
+            config.camera, width=int(size), height=int(size)))
+    return config
+
+
+def _replace(config, options: dict, what: str):
+    names = {f.name for f in dataclasses.fields(config)}
     unknown = sorted(set(options) - names)
     if unknown:
         raise TypeError(f'unknown option(s) {unknown} for {what}; valid: {sorted(names)}')
-    return cls(**options)
+    return dataclasses.replace(config, **options)
 
 
-def make_env(task: str, scene=None, **options):
-    """Build a task env (see the module docstring)."""
-    if task not in TASKS:
-        raise ValueError(f'unknown task {task!r}; valid tasks: {", ".join(TASKS)}')
+def make_env(task: str, scene=None, config=None, **options):
+    """Build a task env (see the module docstring); `config` (the task's config, default
+    env_config(task)) with `options` applied."""
+    config = env_config(task, **options) if config is None else _replace(config, options, task)
     if task == 'choice':
         if scene is not None:
             raise ValueError('the choice task has no scene')
-        return ChoiceEnv(_config(ChoiceConfig, options, 'the choice task'))
-    # Deferred: the navigation envs pull in MuJoCo / MJX.
-    from hron_jax.envs.navigation import NavConfig, NavigationEnv
-    from hron_jax.sensors import CameraConfig
-
-    options = dict(options)
-    size = options.pop('image_size', None)
-    if size is not None:
-        cam = options.get('camera', CameraConfig())
-        options['camera'] = dataclasses.replace(cam, width=int(size), height=int(size))
-    if 'task' in options:
-        raise TypeError("pass the task as make_env's first argument, not as an option")
-    config = _config(NavConfig, dict(options, task=task), f'the {task} task')
+        return ChoiceEnv(config)
+    from hron_jax.envs.navigation import NavigationEnv
+    if config.task != task:
+        raise ValueError(f'config is for the {config.task} task, not {task}')
     return NavigationEnv(DEFAULT_SCENES[task] if scene is None else scene, config)
 
 
-__all__ = ['make_env', 'TASKS', 'DEFAULT_SCENES', 'Env', 'EnvState', 'AutoResetWrapper',
+__all__ = ['make_env', 'env_config', 'TASKS', 'NAV_TASKS', 'DEFAULT_SCENES', 'Env', 'EnvState', 'AutoResetWrapper',
            'ChoiceEnv', 'ChoiceConfig']

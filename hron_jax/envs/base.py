@@ -29,7 +29,7 @@ can bootstrap the value of a truncated episode from its real last state (learner
 ``env.final_obs(state)``). An env may instead reset itself inside ``step`` (attribute
 ``auto_reset = True`` and a ``final_obs(state)`` method, e.g. the navigation envs, which so render
 one frame per step and the pre-reset one only on demand); hron_jax.ppo then does not wrap it.
-``GymnaxWrapper`` adapts a plain gymnax-style env.
+Rollouts of any env under a policy: hron_jax.rollout.
 """
 from __future__ import annotations
 
@@ -39,9 +39,12 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-# Metrics every env reports; see EnvState. 'success' / 'spl' / 'path_length' come from the task,
-# 'episode_length' / 'return' / 'episode_done' from the shared bookkeeping in next_state.
-METRIC_KEYS = ('success', 'spl', 'path_length', 'episode_length', 'return', 'episode_done')
+# What describes a finished episode (learners and evaluation read these at the steps where
+# metrics['episode_done'] is 1). 'success' / 'spl' / 'path_length' come from the task,
+# 'episode_length' / 'return' from the shared bookkeeping in next_state.
+EPISODE_METRICS = ('success', 'spl', 'episode_length', 'path_length', 'return')
+# Metrics every env reports; see EnvState.
+METRIC_KEYS = EPISODE_METRICS + ('episode_done',)
 
 
 @struct.dataclass
@@ -149,8 +152,9 @@ class Wrapper:
         return getattr(self.env, name)
 
 
-def _select(pred, on_true, on_false):
-    """Per-leaf where() for a scalar predicate (one env; vmapped outside)."""
+def select_tree(pred, on_true, on_false):
+    """Per-leaf where() of two pytrees of the same structure, for a scalar predicate (one env;
+    vmapped outside): how a step picks between a continuing and a fresh episode without branching."""
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
 
 
@@ -180,8 +184,8 @@ class AutoResetWrapper(Wrapper):
         stepped = self.env.step(state, action)
         fresh = self.env.reset(reset_key)
         done = stepped.done > 0.5
-        obs = _select(done, fresh.obs, stepped.obs)
-        inner = _select(done, fresh.inner, stepped.inner)
+        obs = select_tree(done, fresh.obs, stepped.obs)
+        inner = select_tree(done, fresh.inner, stepped.inner)
         info = dict(stepped.info)
         # Per-episode accumulators restart with the new episode; everything else (truncation, and
         # any env-specific info) describes the step just taken.
@@ -195,63 +199,3 @@ class AutoResetWrapper(Wrapper):
         """The pre-reset observation of the step that produced `state` (learners call this rather
         than reading info, so envs that reset themselves can render it only when needed)."""
         return state.info['final_obs']
-
-
-@struct.dataclass
-class GymnaxInner:
-    env_state: Any
-    rng: jax.Array
-
-
-class GymnaxWrapper:
-    """Adapts a gymnax-style env to this API.
-
-    The wrapped env provides ``reset(key, params) -> (obs, env_state)`` and
-    ``step(key, env_state, action, params) -> (obs, env_state, reward, done, info)``. If it also has
-    ``reset_env`` / ``step_env`` (a real gymnax Environment, whose ``step`` auto-resets and so loses
-    the final observation), those non-resetting versions are used instead; wrap the result in
-    AutoResetWrapper (hron_jax.ppo does that for you).
-
-    Termination vs truncation: gymnax folds its time limit into ``done``. The step is counted as a
-    truncation when ``info['truncation']`` is set, or when ``max_steps`` is given here and reached
-    without ``done`` (give the gymnax env a larger internal limit in that case). ``info['success']``,
-    ``info['spl']`` and ``info['path_length']`` are passed through to metrics when present.
-    """
-
-    def __init__(self, env, params=None, max_steps: int | None = None, num_actions: int | None = None):
-        self.env = env
-        self.params = params
-        self.max_steps = max_steps
-        if num_actions is None:
-            num_actions = getattr(env, 'num_actions', None)
-        if num_actions is None:
-            num_actions = int(env.action_space(params).n)
-        self.num_actions = int(num_actions)
-        self._reset = getattr(env, 'reset_env', env.reset)
-        self._step = getattr(env, 'step_env', env.step)
-
-    def reset(self, rng):
-        rng, sub = jax.random.split(rng)
-        obs, env_state = self._reset(sub, self.params)
-        return initial_state(obs, GymnaxInner(env_state=env_state, rng=rng))
-
-    def step(self, state, action):
-        rng, sub = jax.random.split(state.inner.rng)
-        obs, env_state, reward, done, info = self._step(sub, state.inner.env_state, action, self.params)
-        info = info or {}
-        done = _f32(done)
-        trunc_flag = _f32(info['truncation']) if 'truncation' in info else jnp.zeros((), jnp.float32)
-        terminated = done * (1.0 - trunc_flag)
-        new = next_state(
-            state, obs, GymnaxInner(env_state=env_state, rng=rng), reward, terminated,
-            success=info.get('success', 0.0), spl=info.get('spl'),
-            path_length=info.get('path_length', 0.0), max_steps=self.max_steps)
-        # An env-reported truncation ends the episode too (next_state only knows max_steps).
-        truncation = jnp.maximum(new.info['truncation'], trunc_flag * done)
-        done = jnp.maximum(new.done, truncation)
-        info_out = dict(new.info, truncation=truncation)
-        metrics = dict(new.metrics, episode_done=done)
-        return new.replace(done=done, info=info_out, metrics=metrics)
-
-    def observation_example(self):
-        return self.reset(jax.random.PRNGKey(0)).obs

@@ -71,6 +71,12 @@ class ChoiceConfig:
     def num_nodes(self) -> int:
         return 4 + (self.max_distractors if self.distractors else 0)
 
+    @property
+    def max_steps(self) -> int:
+        """Episode length limit, as NavConfig.max_steps: evaluation and analysis roll every task
+        out for config.max_steps steps, and a choice episode always ends after its one step."""
+        return 1
+
 
 @struct.dataclass
 class ChoiceInner:

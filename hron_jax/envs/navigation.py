@@ -51,7 +51,7 @@ import dataclasses
 import functools
 import math
 import os
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -60,15 +60,15 @@ from flax import struct
 
 from hron_jax import geodesic as G
 from hron_jax import goals as goal_lib
+from hron_jax.envs import NAV_TASKS
 from hron_jax.envs import placement as P
-from hron_jax.envs.base import EnvState, initial_state, next_state
+from hron_jax.envs.base import EnvState, initial_state, next_state, select_tree
 from hron_jax.graph_builder import GraphBuilder, GraphConfig, Placement
 from hron_jax.metric_map import MapConfig, MetricMap
 from hron_jax.scenes.loader import Scene, load_scene
 from hron_jax.sensors import Camera, CameraConfig
 from hron_jax import sim as S
 
-TASKS = ('directed', 'exploratory')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,20 +89,13 @@ class NavConfig:
     auto_reset: bool = True
     camera: CameraConfig = CameraConfig(width=32, height=32)
     sim: S.SimConfig = S.SimConfig()
-    map: MapConfig = MapConfig()      # its premap is overridden by `premap`
-    slot_grid: int = 2                # candidate target points per slot = slot_grid ** 2
-    cell_size: float = 0.1            # occupancy grid of the geodesic fields (m)
-    # The grid is inflated by the capsule radius + clearance: contacts (2 cm margin) keep the capsule
-    # 0-3 cm off surfaces, and cells free on a grid inflated by the bare radius but not physically
-    # reachable became false minima of the fields (measured: an oracle stuck 2.5 cm outside the
-    # success disk in a dead end next to a wall whose other side held the target).
-    clearance: float = 0.03
-    robust_margin: float = 0.25       # targets keep a free cell this far inside their disk (placement)
-    field_dtype: str = 'float16'
+    graph: GraphConfig = GraphConfig()
+    map: MapConfig = MapConfig()
+    placement: P.PlacementConfig = P.PlacementConfig()
 
     def __post_init__(self):
-        if self.task not in TASKS:
-            raise ValueError(f'unknown navigation task {self.task!r}; valid: {", ".join(TASKS)}')
+        if self.task not in NAV_TASKS:
+            raise ValueError(f'unknown navigation task {self.task!r}; valid: {", ".join(NAV_TASKS)}')
         if self.max_steps < 1:
             raise ValueError('max_steps must be >= 1')
 
@@ -146,10 +139,6 @@ class _Start(NamedTuple):
     dist: jax.Array
 
 
-def _select(pred, a, b):
-    return jax.tree.map(lambda x, y: jnp.where(pred, x, y), a, b)
-
-
 class NavigationEnv:
     """Directed / exploratory object navigation; see the module docstring."""
 
@@ -162,14 +151,12 @@ class NavigationEnv:
         self.config = config
         self.sim = S.Simulator.from_file(scene.path, config.sim)
         self.camera = Camera.for_simulator(self.sim, config.camera, scene=scene)
-        self.graph_builder = GraphBuilder(scene, GraphConfig(premap=config.premap))
-        self.metric_map = (MetricMap(scene, config.camera, dataclasses.replace(config.map, premap=config.premap))
+        self.graph_builder = GraphBuilder(scene, config.graph, premap=config.premap)
+        self.metric_map = (MetricMap(scene, config.camera, config.map, premap=config.premap)
                            if config.metric_map else None)
-        self.tables = P.build_tables(scene, self.sim.mj_model, P.PlacementConfig(
-            slot_grid=config.slot_grid, success_distance=config.success_distance,
-            cell_size=config.cell_size, agent_radius=config.sim.radius + config.clearance,
-            agent_height=config.sim.height, field_dtype=config.field_dtype,
-            robust_margin=config.robust_margin))
+        self.tables = P.build_tables(scene, self.sim.mj_model, config.placement,
+                                     success_distance=config.success_distance,
+                                     agent_radius=config.sim.radius, agent_height=config.sim.height)
         if config.task == 'exploratory' and not self.tables.goal_ok.any():
             raise ValueError(f'{scene.path}: no satisfiable goal')
         if config.task == 'directed' and len(self.tables.pairs) == 0:
@@ -243,7 +230,7 @@ class NavigationEnv:
             ep = self.sample_episode(k_ep)
             start = self._start(ep)
             fresh = self._inner(start, start.discovered, start.map_key, rng)
-            nxt = _select(done, fresh, cont)
+            nxt = select_tree(done, fresh, cont)
             view_pose = jnp.where(done, ep.pose, pose)
         else:
             nxt, view_pose = cont, pose
@@ -282,7 +269,7 @@ class NavigationEnv:
         t = self.tables
         with jax.ensure_compile_time_eval():
             f = P.success_fields(t.grid, jnp.asarray(t.point_xy),
-                                 self.config.success_distance - self.config.robust_margin)
+                                 self.config.success_distance - self.config.placement.robust_margin)
             return np.asarray(f).astype(t.fields.dtype)
 
     def _distance(self, field_index, xy):
@@ -332,12 +319,6 @@ class NavigationEnv:
 # Reference policies and rollouts
 # ------------------------------------------------------------------------------------------------
 
-def random_policy(env, state: EnvState, rng) -> jax.Array:
-    """Uniform over the five actions."""
-    del state
-    return jax.random.randint(rng, (), 0, env.num_actions).astype(jnp.int32)
-
-
 def oracle_policy(env: NavigationEnv, state: EnvState, rng=None) -> jax.Array:
     """Shortest-path follower (geodesic.oracle_action): turn toward the descent direction of the
     target's geodesic field (a look-ahead point on the shortest path), move forward once within
@@ -359,38 +340,10 @@ def oracle_policy(env: NavigationEnv, state: EnvState, rng=None) -> jax.Array:
     return table[code]
 
 
-def make_rollout(env, policy, num_steps: int):
-    """Pure `rollout(state, rng, actions=None) -> (state, traj)` of `num_steps` steps of one env
-    under `policy(env, state, rng) -> action`; `actions` (i32[num_steps], optional) overrides the
-    policy wherever it is >= 0 (scripted steps). traj holds per-step action, reward, done,
-    truncation, metrics, the agent pose before the step (pose f32[T, 3]) and after it (final_pose,
-    before any auto-reset), and the episode's d0. jit / vmap it."""
-    def rollout(state, rng, actions=None):
-        def body(carry, scripted):
-            state, rng = carry
-            rng, k = jax.random.split(rng)
-            action = policy(env, state, k)
-            if scripted is not None:
-                action = jnp.where(scripted >= 0, scripted, action).astype(jnp.int32)
-            pose = env.agent_pose(state)
-            nxt = env.step(state, action)
-            out = dict(action=action, reward=nxt.reward, done=nxt.done,
-                       truncation=nxt.info['truncation'], metrics=nxt.metrics, pose=pose,
-                       final_pose=nxt.info['final'].pose, d0=state.inner.d0)
-            return (nxt, rng), out
-        xs = None if actions is None else jnp.asarray(actions, jnp.int32)
-        (state, _), traj = jax.lax.scan(body, (state, rng), xs, length=num_steps)
-        return state, traj
-    return rollout
-
-
-def first_episode_metrics(traj) -> dict:
-    """Per env (leading batch axis [B, T]), the metrics of its first finished episode, plus
-    'finished' (bool[B]); numpy."""
-    done = np.asarray(traj['metrics']['episode_done']) > 0.5
-    finished = done.any(-1)
-    first = np.argmax(done, -1)
-    rows = np.arange(done.shape[0])
-    out = {k: np.asarray(v)[rows, first] for k, v in traj['metrics'].items()}
-    out['finished'] = finished
-    return out
+def pose_record(env):
+    """`record` hook of hron_jax.rollout.unroll for a navigation env: per step the agent pose
+    before the step ('pose' f32[3]), after it but before any auto-reset ('final_pose'), and the
+    episode's geodesic start distance ('d0', what SPL divides by)."""
+    def record(state, action, extras, nxt):
+        return dict(pose=env.agent_pose(state), final_pose=nxt.info['final'].pose, d0=state.inner.d0)
+    return record

@@ -76,12 +76,20 @@ _NUM_OBJ = len(V.OBJECTS)
 
 @dataclasses.dataclass(frozen=True)
 class PlacementConfig:
+    """How candidate target points and their geodesic fields are laid out (hashable).
+
+    The success radius and the agent's size are not here: they belong to the task and the
+    simulator (NavConfig.success_distance, SimConfig.radius / height) and are passed to
+    `build_tables` from there, so each lives in one place."""
+
     slot_grid: int = 2              # candidate points per slot = slot_grid ** 2
-    success_distance: float = 1.0   # m, xy radius of the success region
     robust_margin: float = 0.25     # m; a usable target has a main free cell this far inside its disk
     cell_size: float = 0.1          # occupancy grid (m)
-    agent_radius: float = 0.2       # inflation of the occupancy grid (the simulator's capsule)
-    agent_height: float = 1.2
+    # The grid is inflated by the capsule radius + clearance: contacts (2 cm margin) keep the capsule
+    # 0-3 cm off surfaces, and cells free on a grid inflated by the bare radius but not physically
+    # reachable became false minima of the fields (measured: an oracle stuck 2.5 cm outside the
+    # success disk in a dead end next to a wall whose other side held the target).
+    clearance: float = 0.03
     field_dtype: str = 'float16'    # 'float16' | 'float32' (bfloat16 is too coarse: 12 cm at 16 m)
     stencil: int = 48               # geodesic stencil (see hron_jax.geodesic)
 
@@ -200,17 +208,20 @@ def _reference_cell(scene: Scene, grid: G.OccupancyGrid) -> tuple[np.ndarray, fl
     return centres[i, j].astype(np.float64), 0.0
 
 
-def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig()) -> EpisodeTables:
+def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(), *,
+                 success_distance: float = 1.0, agent_radius: float = 0.2,
+                 agent_height: float = 1.2) -> EpisodeTables:
     """Host-side precomputation for one scene (see the module docstring).
 
     model: the compiled MuJoCo model the agent moves in (hron_jax.sim.Simulator.mj_model), whose
-    collision bits define the obstacles; its occupancy grid is built at `config.cell_size`.
+    collision bits define the obstacles; its occupancy grid is built at `config.cell_size`,
+    inflated by agent_radius + config.clearance. success_distance: xy radius of the success region.
     """
     if config.field_dtype not in ('float16', 'float32'):
         raise ValueError(f"field_dtype must be 'float16' or 'float32', got {config.field_dtype!r}")
     grid = G.occupancy_grid(model, config=G.GridConfig(
-        cell_size=config.cell_size, agent_radius=config.agent_radius,
-        agent_height=config.agent_height))
+        cell_size=config.cell_size, agent_radius=agent_radius + config.clearance,
+        agent_height=agent_height))
     free = np.asarray(grid.free)
     h, w = free.shape
 
@@ -230,13 +241,13 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     keys = np.round(pts.reshape(-1, 2) * 1000).astype(np.int64)
     uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     point_xy = (uniq / 1000.0).astype(np.float32)
-    fields = np.asarray(success_fields(grid, jnp.asarray(point_xy), config.success_distance,
+    fields = np.asarray(success_fields(grid, jnp.asarray(point_xy), success_distance,
                                        stencil=config.stencil))
     # A point is usable when a main free cell lies robust_margin inside its success disk. Points
     # whose disk meets free space only in a sliver (an object deep under a bed, or behind a wall)
     # need cm-precise final moves that 0.2 m steps and 30 deg turns cannot reliably make.
     centres = np.asarray(grid.centres())[main]
-    inner = config.success_distance - config.robust_margin
+    inner = success_distance - config.robust_margin
     point_ok = np.array([(np.linalg.norm(centres - q, axis=-1) <= inner).any() for q in point_xy],
                         bool).reshape(-1)
     slot_point = inv.reshape(s, k).astype(np.int32)

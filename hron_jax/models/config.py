@@ -10,6 +10,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
+from hron_jax.errors import ConfigError
+
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
@@ -65,13 +67,13 @@ class ModelConfig:
     use_graph: bool = True
 
     def __post_init__(self):
-        if self.hidden % self.heads:
-            raise ValueError(f"hidden ({self.hidden}) must be divisible by heads ({self.heads})")
+        if self.heads < 1 or self.hidden % self.heads:
+            raise ConfigError("heads", f"must divide hidden = {self.hidden}, got {self.heads}")
         for field, allowed in (("gnn", ("hgt", "gcn")), ("pooling", ("task", "mean")),
                                ("node_features", ("learned", "word_vectors")),
                                ("goal_encoding", ("one_hot", "word_vector"))):
             if getattr(self, field) not in allowed:
-                raise ValueError(f"ModelConfig.{field}={getattr(self, field)!r}; expected one of {allowed}")
+                raise ConfigError(field, f"expected one of {allowed}, got {getattr(self, field)!r}")
 
 
 # Variant name -> the ModelConfig fields it fixes (everything else comes from the caller's config).

@@ -17,7 +17,7 @@ import numpy as np
 
 from . import mjcf
 from . import vocabulary as V
-from .generator import DoorSpec, Item, RoomSpec, build_house, generate_house, make_door
+from .generator import Item, RoomSpec, build_house, generate_house, make_door
 
 DEFAULT_HOUSE_SEED = 7
 GENERATED_SEEDS = (1, 2, 3)

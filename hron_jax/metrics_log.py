@@ -1,0 +1,181 @@
+"""Training metrics: per-chunk summaries over seeds, the run's log files, learning curves.
+
+    summarize_chunk(metrics {name: f32[S, n]}) -> {name: f64[S]}   one chunk of n updates, S seeds
+    log = MetricsLog(run_dir, resume_update)    metrics.jsonl (source of truth), metrics.csv, tb/
+    row = log.append(update, summary, wall_time, steps_per_s)      mean / std over seeds + per seed
+    plot_learning_curves({label: rows}, path)    SR and return vs env steps, mean +- std over seeds
+
+A resumed run rewinds the log to the update it resumes from (rows written after that checkpoint
+are replayed by the training that follows), so the files equal those of an uninterrupted run.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from hron_jax.ppo import EPISODE_METRICS
+from hron_jax.run_dir import read_metrics
+
+
+def summarize_chunk(metrics: dict) -> dict[str, np.ndarray]:
+    """{name: f32[S]} from one chunk's PPO metrics {name: [S, n]}: episode metrics averaged over
+    the episodes completed in the chunk (NaN if none), 'episodes' summed, 'env_steps' the last
+    value, everything else (losses, reward) the mean over updates."""
+    m = {k: np.asarray(v, np.float64) for k, v in metrics.items()}
+    ep = m['episodes']
+    count = ep.sum(-1)
+    out = {}
+    for k, v in m.items():
+        if k in EPISODE_METRICS:
+            s = np.where(ep > 0, v, 0.0) * ep
+            out[k] = np.where(count > 0, s.sum(-1) / np.maximum(count, 1), np.nan)
+        elif k == 'episodes':
+            out[k] = count
+        elif k == 'env_steps':
+            out[k] = v[:, -1]
+        else:
+            out[k] = v.mean(-1)
+    return out
+
+
+def _num(x):
+    x = float(x)
+    return None if not math.isfinite(x) else x
+
+
+def _nan_stats(v: np.ndarray):
+    v = np.asarray(v, np.float64)
+    ok = np.isfinite(v)
+    if not ok.any():
+        return None, None
+    return float(v[ok].mean()), float(v[ok].std())
+
+
+class MetricsLog:
+    """metrics.jsonl (source of truth), metrics.csv and TensorBoard, resumable at an update."""
+
+    def __init__(self, run_dir: Path, resume_update: int | None, tensorboard: bool = True):
+        self.run_dir = Path(run_dir)
+        self.jsonl = self.run_dir / 'metrics.jsonl'
+        self.csv = self.run_dir / 'metrics.csv'
+        self.rows: list[dict] = []
+        if resume_update is not None:
+            # Rows written after the checkpoint we resume from are replayed: drop them.
+            self.rows = [r for r in read_metrics(run_dir) if r['update'] <= resume_update]
+        with open(self.jsonl, 'w') as f:
+            for row in self.rows:
+                f.write(json.dumps(row) + '\n')
+        self._rewrite_csv()
+        self.tb = None
+        if tensorboard:
+            from tensorboardX import SummaryWriter
+            purge = None
+            if resume_update is not None:
+                purge = (self.rows[-1]['env_steps'] + 1) if self.rows else 0
+            self.tb = SummaryWriter(str(self.run_dir / 'tb'), purge_step=purge)
+
+    @property
+    def wall_time(self) -> float:
+        return self.rows[-1]['wall_time'] if self.rows else 0.0
+
+    def _columns(self) -> list[str]:
+        keys = []
+        for row in self.rows:
+            for k in row:
+                if k != 'per_seed' and k not in keys:
+                    keys.append(k)
+        return keys
+
+    def _rewrite_csv(self) -> None:
+        cols = self._columns()
+        with open(self.csv, 'w', newline='') as f:
+            w = csv.writer(f)
+            w.writerow(cols)
+            for row in self.rows:
+                w.writerow(['' if row.get(k) is None else row.get(k) for k in cols])
+
+    def append(self, update: int, summary: dict[str, np.ndarray], wall_time: float,
+               steps_per_s: float) -> dict:
+        row = {'update': int(update), 'env_steps': int(summary['env_steps'][0]),
+               'wall_time': round(wall_time, 3), 'steps_per_s': round(steps_per_s, 1),
+               'seeds': int(len(summary['env_steps']))}
+        for k in sorted(summary):
+            if k == 'env_steps':
+                continue
+            mean, std = _nan_stats(summary[k])
+            row[k], row[k + '_std'] = mean, std
+        row['per_seed'] = {k: [_num(x) for x in v] for k, v in sorted(summary.items())
+                           if k != 'env_steps'}
+        new_cols = any(k not in self._columns() for k in row if k != 'per_seed')
+        self.rows.append(row)
+        with open(self.jsonl, 'a') as f:
+            f.write(json.dumps(row) + '\n')
+        if new_cols:
+            self._rewrite_csv()
+        else:
+            with open(self.csv, 'a', newline='') as f:
+                csv.writer(f).writerow(['' if row.get(k) is None else row.get(k)
+                                        for k in self._columns()])
+        if self.tb is not None:
+            step = row['env_steps']
+            for k, v in summary.items():
+                if k == 'env_steps':
+                    continue
+                if row[k] is not None:
+                    self.tb.add_scalar(f'train/{k}', row[k], step)
+                if len(v) > 1:
+                    for i, x in enumerate(v):
+                        if math.isfinite(x):
+                            self.tb.add_scalar(f'seed{i}/{k}', float(x), step)
+            self.tb.add_scalar('perf/steps_per_s', steps_per_s, step)
+        return row
+
+    def flush(self) -> None:
+        if self.tb is not None:
+            self.tb.flush()
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.close()
+            self.tb = None
+
+
+def plot_learning_curves(runs: dict[str, list[dict]], path, title: str = '') -> None:
+    """SR and return vs env steps (per seed), mean +- std over seeds, one line per run label."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for label, rows in runs.items():
+        x = np.asarray([r['env_steps'] for r in rows], np.float64)
+        for ax, key in zip(axes, ('success', 'return')):
+            mean = np.asarray([np.nan if r.get(key) is None else r[key] for r in rows])
+            std = np.asarray([np.nan if r.get(key + '_std') is None else r[key + '_std'] for r in rows])
+            ok = np.isfinite(mean)
+            if not ok.any():
+                continue
+            line, = ax.plot(x[ok], mean[ok], lw=1.5, label=label)
+            s = np.nan_to_num(std[ok])
+            ax.fill_between(x[ok], mean[ok] - s, mean[ok] + s, color=line.get_color(), alpha=0.2, lw=0)
+    axes[0].set_ylabel('success rate (SR)')
+    axes[0].set_ylim(-0.02, 1.02)
+    axes[1].set_ylabel('episode return')
+    for ax in axes:
+        ax.set_xlabel('environment steps')
+        ax.grid(alpha=0.3)
+        ax.ticklabel_format(axis='x', style='sci', scilimits=(0, 3))
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=7, loc='lower right')
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    tmp = Path(str(path) + '.tmp.png')
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)

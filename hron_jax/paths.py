@@ -1,0 +1,24 @@
+"""Where the repository's files are: its root, the scene directory, and repo-relative paths.
+
+Scenes named in a run's config.json are stored relative to the repository root when they lie
+inside it (`portable_path`), so run directories survive moving the checkout; `resolve` turns
+such a path back into an absolute one.
+"""
+from __future__ import annotations
+
+import os
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENE_DIR = os.path.join(REPO_ROOT, 'scenes')
+
+
+def portable_path(path: str) -> str:
+    """`path` relative to the repository root when it lies inside it, else absolute."""
+    path = os.path.abspath(os.path.join(REPO_ROOT, path))
+    rel = os.path.relpath(path, REPO_ROOT)
+    return path if rel.startswith(os.pardir) else rel
+
+
+def resolve(path: str) -> str:
+    """Absolute path of `path` (a relative one is relative to the repository root)."""
+    return os.path.join(REPO_ROOT, path)
