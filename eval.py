@@ -2,6 +2,7 @@
 
 Thin entry point; the logic is hron_jax/evaluation.py.
 """
+
 import sys
 
 from hron_jax.evaluation import main

@@ -3,6 +3,7 @@
 Thin entry point: the CLI is hron_jax/cli.py, training hron_jax/training.py, the run config
 hron_jax/run_config.py.
 """
+
 import sys
 
 from hron_jax.cli import main

@@ -30,6 +30,7 @@ Table I / II argue about).
 
 Host-side analysis (numpy / matplotlib) except `collect`, which jits one rollout program.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -48,32 +49,35 @@ NODE_TYPE_SIZES = {GT.ROOM: 140.0, GT.FURNITURE: 60.0, GT.OBJECT: 40.0}
 # Loading a run
 # ------------------------------------------------------------------------------------------------
 
+
 @dataclasses.dataclass
 class Run:
     """A trained run ready for analysis. params: one seed's variables (no seed axis)."""
 
     run_dir: Path
-    config: Any            # hron_jax.run_config.TrainConfig
-    env: Any               # built like training, but without auto-reset (episodes end)
+    config: Any  # hron_jax.run_config.TrainConfig
+    env: Any  # built like training, but without auto-reset (episodes end)
     network: Any
     params: Any
-    step: int              # checkpoint (updates)
+    step: int  # checkpoint (updates)
     seed_index: int
 
     def env_variant(self, **overrides):
         """The run's env with some options changed (e.g. distractors=True); the model accepts any
         node count, so a policy can be probed on scenes it was not trained on."""
         from hron_jax.run_config import build_env
+
         return build_env(self.config, episodic=True, **overrides)
 
 
 def load_run(run_dir, step: int | None = None, seed_index: int = 0) -> Run:
     """Restore one seed's parameters of a train.py run (latest checkpoint unless `step`)."""
     import jax
+
     from hron_jax.run_config import build_env, build_network
     from hron_jax.run_dir import load_config, restore_params
 
-    run_dir = Path(run_dir).resolve()   # orbax restores from absolute paths only
+    run_dir = Path(run_dir).resolve()  # orbax restores from absolute paths only
     config = load_config(run_dir)
     env = build_env(config, episodic=True)
     network = build_network(config, env.num_actions)
@@ -87,18 +91,38 @@ def load_run(run_dir, step: int | None = None, seed_index: int = 0) -> Run:
     return Run(run_dir, config, env, network, params, step, seed_index)
 
 
-def train_command(run_dir, task: str = 'exploratory', model: str = 'rgbd_sg_attn',
-                  total_steps: int = 20480, extra: tuple[str, ...] = ()) -> list[str]:
+def train_command(
+    run_dir,
+    task: str = 'exploratory',
+    model: str = 'rgbd_sg_attn',
+    total_steps: int = 20480,
+    extra: tuple[str, ...] = (),
+) -> list[str]:
     """argv of the train.py call that makes an analysis run (documented in the notebook)."""
     import sys
+
     from hron_jax.paths import REPO_ROOT
-    return [sys.executable, str(Path(REPO_ROOT) / 'train.py'), '--task', task, '--model', model,
-            '--total-steps', str(total_steps), '--out', str(run_dir), '--no-progress', *extra]
+
+    return [
+        sys.executable,
+        str(Path(REPO_ROOT) / 'train.py'),
+        '--task',
+        task,
+        '--model',
+        model,
+        '--total-steps',
+        str(total_steps),
+        '--out',
+        str(run_dir),
+        '--no-progress',
+        *extra,
+    ]
 
 
 # ------------------------------------------------------------------------------------------------
 # Rollouts with attention
 # ------------------------------------------------------------------------------------------------
+
 
 @dataclasses.dataclass
 class Record:
@@ -152,18 +176,20 @@ class Record:
 def _split_attention(att: dict, num_layers: int, num_edges: int):
     """(alpha f32[..., L, M, H], pool_weights f32[..., N]) from attention_readout's dict."""
     import jax.numpy as jnp
+
     enc = att.get('core', {}).get('graph_encoder', {})
     layers = [enc[f'hgt_{i}']['alpha'][0] for i in range(num_layers) if f'hgt_{i}' in enc]
     pw = enc['pool_weights'][0]
     if layers:
         alpha = jnp.stack(layers, axis=-3)
-    else:   # GCN: no attention; keep the rank so the reductions still run (on nothing)
+    else:  # GCN: no attention; keep the rank so the reductions still run (on nothing)
         alpha = jnp.zeros(pw.shape[:-1] + (0, num_edges, 1), jnp.float32)
     return alpha, pw
 
 
-def collect(run: Run, episodes: int = 4, max_steps: int | None = None, seed: int = 0,
-            env=None, greedy: bool = False) -> Record:
+def collect(
+    run: Run, episodes: int = 4, max_steps: int | None = None, seed: int = 0, env=None, greedy: bool = False
+) -> Record:
     """Roll out `episodes` episodes of run's policy (of `env`, default run.env) and record the
     graph, attention and pooling weights at every step. Episode i starts from
     env.reset(fold_in(PRNGKey(seed), i)), as in eval.py. Actions are sampled unless `greedy`.
@@ -171,6 +197,7 @@ def collect(run: Run, episodes: int = 4, max_steps: int | None = None, seed: int
     one for the choice task) and mark the steps after the episode's end invalid."""
     import jax
     import jax.numpy as jnp
+
     from hron_jax.models import attention_readout
     from hron_jax.rollout import episode_ends, unroll
 
@@ -192,35 +219,57 @@ def collect(run: Run, episodes: int = 4, max_steps: int | None = None, seed: int
         obs, g = state.obs, state.obs['graph']
         # Envs without an agent in a scene (choice) record a zero pose.
         pose = env.agent_pose(state) if hasattr(env, 'agent_pose') else jnp.zeros(3)
-        return dict(category=g.nodes['category'], node_type=g.nodes['node_type'],
-                    node_mask=g.nodes['mask'], pos=g.nodes['pos'], senders=g.senders,
-                    receivers=g.receivers, edge_type=g.edges['edge_type'], edge_mask=g.edges['mask'],
-                    goal_classes=obs['goal_classes'], pose=pose)
+        return dict(
+            category=g.nodes['category'],
+            node_type=g.nodes['node_type'],
+            node_mask=g.nodes['mask'],
+            pos=g.nodes['pos'],
+            senders=g.senders,
+            receivers=g.receivers,
+            edge_type=g.edges['edge_type'],
+            edge_mask=g.edges['mask'],
+            goal_classes=obs['goal_classes'],
+            pose=pose,
+        )
 
     def episode(k_reset):
         state = env.reset(k_reset)
-        return state, unroll(env.step, state, policy, jax.random.fold_in(k_reset, 1), steps,
-                             record=record)[2]
+        return state, unroll(env.step, state, policy, jax.random.fold_in(k_reset, 1), steps, record=record)[2]
 
     states, traj = jax.jit(jax.vmap(episode))(reset_keys)
     traj = jax.tree.map(np.asarray, jax.device_get(traj))
-    _, end = episode_ends(traj['done'])                               # [B]
+    _, end = episode_ends(traj['done'])  # [B]
     valid = np.arange(traj['done'].shape[1])[None] <= end[:, None]
     last = lambda x: np.take_along_axis(x, end[:, None], 1)[:, 0]
-    return Record(task=run.config.task, pooling=cfg.pooling,
-                  category=traj['category'], node_type=traj['node_type'],
-                  node_mask=traj['node_mask'].astype(bool), pos=traj['pos'],
-                  senders=traj['senders'], receivers=traj['receivers'], edge_type=traj['edge_type'],
-                  edge_mask=traj['edge_mask'].astype(bool), alpha=traj['alpha'],
-                  pool_weights=traj['pool_weights'], goal_classes=traj['goal_classes'],
-                  pose=traj['pose'], action=traj['action'], valid=valid,
-                  success=last(traj['metrics']['success']), spl=last(traj['metrics']['spl']),
-                  end=end, states=jax.device_get(states), env=env)
+    return Record(
+        task=run.config.task,
+        pooling=cfg.pooling,
+        category=traj['category'],
+        node_type=traj['node_type'],
+        node_mask=traj['node_mask'].astype(bool),
+        pos=traj['pos'],
+        senders=traj['senders'],
+        receivers=traj['receivers'],
+        edge_type=traj['edge_type'],
+        edge_mask=traj['edge_mask'].astype(bool),
+        alpha=traj['alpha'],
+        pool_weights=traj['pool_weights'],
+        goal_classes=traj['goal_classes'],
+        pose=traj['pose'],
+        action=traj['action'],
+        valid=valid,
+        success=last(traj['metrics']['success']),
+        spl=last(traj['metrics']['spl']),
+        end=end,
+        states=jax.device_get(states),
+        env=env,
+    )
 
 
 # ------------------------------------------------------------------------------------------------
 # Reductions
 # ------------------------------------------------------------------------------------------------
+
 
 def live_edges(rec: Record) -> np.ndarray:
     """bool[B,T,M]: edge live, both endpoints live, and a legal HGT relation (what gets attention)."""
@@ -261,17 +310,20 @@ def edge_type_mass(rec: Record) -> dict:
     Returns {'mass': f64[L, H, K] (rows sum to 1 where any attention flowed), 'uniform': f64[K]
     (the same share under uniform attention), 'edges': i64[K] live edge count, 'names': K names}.
     """
-    live = live_edges(rec)                                   # [B,T,M]
+    live = live_edges(rec)  # [B,T,M]
     K = GT.NUM_EDGE_TYPES
-    onehot = (rec.edge_type[..., None] == np.arange(K)) & live[..., None]     # [B,T,M,K]
+    onehot = (rec.edge_type[..., None] == np.arange(K)) & live[..., None]  # [B,T,M,K]
     L, H = rec.alpha.shape[2], rec.alpha.shape[-1]
-    a = np.where(live[:, :, None, :, None], rec.alpha, 0.0)   # [B,T,L,M,H]
+    a = np.where(live[:, :, None, :, None], rec.alpha, 0.0)  # [B,T,L,M,H]
     mass = np.einsum('btlmh,btmk->lhk', a.astype(np.float64), onehot.astype(np.float64))
     total = mass.sum(-1, keepdims=True)
     u = np.einsum('btm,btmk->k', uniform_alpha(rec), onehot.astype(np.float64))
-    return {'mass': np.where(total > 0, mass / np.maximum(total, 1e-12), 0.0).reshape(L, H, K),
-            'uniform': u / max(u.sum(), 1e-12), 'edges': onehot.sum((0, 1, 2)),
-            'names': GT.EDGE_TYPES}
+    return {
+        'mass': np.where(total > 0, mass / np.maximum(total, 1e-12), 0.0).reshape(L, H, K),
+        'uniform': u / max(u.sum(), 1e-12),
+        'edges': onehot.sum((0, 1, 2)),
+        'names': GT.EDGE_TYPES,
+    }
 
 
 def node_attention(rec: Record):
@@ -279,7 +331,7 @@ def node_attention(rec: Record):
     (sum of alpha over its live out-edges, mean over heads), and the same under uniform attention."""
     live = live_edges(rec)
     n = rec.node_mask.shape[-1]
-    a = np.where(live[:, :, None, :], rec.alpha.mean(-1), 0.0)           # [B,T,L,M]
+    a = np.where(live[:, :, None, :], rec.alpha.mean(-1), 0.0)  # [B,T,L,M]
     send = np.broadcast_to(rec.senders[:, :, None, :], a.shape)
     received = _segment_sum(a, send, n)
     uniform = _segment_sum(uniform_alpha(rec), rec.senders, n)
@@ -288,10 +340,12 @@ def node_attention(rec: Record):
 
 def pool_shares(rec: Record) -> dict:
     """Normalised pooling weights f64[B,T,N] of the model and of mean pooling on the same graphs."""
+
     def norm(w):
         w = np.where(rec.node_mask, w, 0.0).astype(np.float64)
         s = w.sum(-1, keepdims=True)
         return np.where(s > 0, w / np.maximum(s, 1e-12), 0.0)
+
     return {'model': norm(rec.pool_weights), 'mean': norm(rec.node_mask.astype(np.float64))}
 
 
@@ -348,20 +402,28 @@ def summary(rec: Record, layer: int = -1) -> dict:
     """Scalars for a table / CI: medians of goal_concentration plus episode SR."""
     g = goal_concentration(rec, layer)
     med = lambda x: float(np.nanmedian(x)) if np.size(x) else float('nan')
-    return {'episodes': int(rec.valid.shape[0]), 'steps': int(rec.valid.sum()),
-            'success_rate': float(np.mean(rec.success)),
-            'live_nodes': med(g['live_nodes']), 'goal_fraction': med(g['goal_fraction']),
-            'steps_with_goal_node': g['with_goal'],
-            'pool_goal_share_model': med(g['pool_model']), 'pool_goal_share_mean': med(g['pool_mean']),
-            'hgt_ratio_goal': med(g['hgt_goal']), 'hgt_ratio_other': med(g['hgt_other'])}
+    return {
+        'episodes': int(rec.valid.shape[0]),
+        'steps': int(rec.valid.sum()),
+        'success_rate': float(np.mean(rec.success)),
+        'live_nodes': med(g['live_nodes']),
+        'goal_fraction': med(g['goal_fraction']),
+        'steps_with_goal_node': g['with_goal'],
+        'pool_goal_share_model': med(g['pool_model']),
+        'pool_goal_share_mean': med(g['pool_mean']),
+        'hgt_ratio_goal': med(g['hgt_goal']),
+        'hgt_ratio_other': med(g['hgt_other']),
+    }
 
 
 # ------------------------------------------------------------------------------------------------
 # Figures (matplotlib; each returns the Figure)
 # ------------------------------------------------------------------------------------------------
 
+
 def _class_label(cid: int) -> str:
     from hron_jax.scenes import vocabulary as V
+
     return V.class_name(int(cid)).split(':', 1)[-1]
 
 
@@ -383,16 +445,15 @@ def plot_edge_type_attention(rec: Record, title: str = ''):
     x = np.arange(len(present))
     width = 0.8 / L
     for l in range(L):
-        a0.bar(x + (l - (L - 1) / 2) * width, st['mass'][l].mean(0)[present], width,
-               label=f'layer {l}')
-    a0.scatter(x, st['uniform'][present], marker='_', s=400, color='k', zorder=5,
-               label='uniform attention')
+        a0.bar(x + (l - (L - 1) / 2) * width, st['mass'][l].mean(0)[present], width, label=f'layer {l}')
+    a0.scatter(x, st['uniform'][present], marker='_', s=400, color='k', zorder=5, label='uniform attention')
     a0.set_xticks(x, names, rotation=30, ha='right', fontsize=8)
     a0.set_ylabel('share of attention mass')
     a0.legend(fontsize=7)
     a0.grid(axis='y', alpha=0.3)
-    ratio = np.log2(np.maximum(st['mass'][:, :, present], 1e-6)
-                    / np.maximum(st['uniform'][present], 1e-6)).reshape(L * H, -1)
+    ratio = np.log2(
+        np.maximum(st['mass'][:, :, present], 1e-6) / np.maximum(st['uniform'][present], 1e-6)
+    ).reshape(L * H, -1)
     lim = max(1.0, float(np.nanmax(np.abs(ratio))))
     im = a1.imshow(ratio, cmap='RdBu_r', vmin=-lim, vmax=lim, aspect='auto')
     a1.set_xticks(x, names, rotation=30, ha='right', fontsize=8)
@@ -405,8 +466,7 @@ def plot_edge_type_attention(rec: Record, title: str = ''):
     return fig
 
 
-ROLES = ('goal object', 'goal furniture', 'goal room', 'other object', 'other furniture',
-         'other room')
+ROLES = ('goal object', 'goal furniture', 'goal room', 'other object', 'other furniture', 'other room')
 
 
 def node_roles(rec: Record) -> np.ndarray:
@@ -416,8 +476,8 @@ def node_roles(rec: Record) -> np.ndarray:
     other = {GT.OBJECT: 3, GT.FURNITURE: 4, GT.ROOM: 5}
     for nt, r in other.items():
         role = np.where(rec.node_mask & (rec.node_type == nt), r, role)
-    for j in (2, 1, 0):      # object wins over furniture wins over room if categories coincide
-        g = rec.goal_classes[..., j:j + 1]
+    for j in (2, 1, 0):  # object wins over furniture wins over room if categories coincide
+        g = rec.goal_classes[..., j : j + 1]
         role = np.where(rec.node_mask & (g >= 0) & (rec.category == g), j, role)
     return role
 
@@ -429,10 +489,10 @@ def role_shares(rec: Record) -> dict:
     v = rec.valid
     out = {}
     for key in ('model', 'mean'):
-        out[key] = np.array([(shares[key] * (role == r)).sum(-1)[v].mean() if v.any() else 0.0
-                             for r in range(len(ROLES))])
-    out['count'] = np.array([(role == r).sum(-1)[v].mean() if v.any() else 0.0
-                             for r in range(len(ROLES))])
+        out[key] = np.array(
+            [(shares[key] * (role == r)).sum(-1)[v].mean() if v.any() else 0.0 for r in range(len(ROLES))]
+        )
+    out['count'] = np.array([(role == r).sum(-1)[v].mean() if v.any() else 0.0 for r in range(len(ROLES))])
     return out
 
 
@@ -447,8 +507,13 @@ def plot_pool_weights(rec: Record, episode: int = 0, max_nodes: int = 40, title:
     rs = role_shares(rec)
     T = int(rec.end[episode]) + 1
     timeline = T > 1
-    fig, axes = plt.subplots(1, 2 if timeline else 1, figsize=(12 if timeline else 6, 4.2),
-                             squeeze=False, gridspec_kw=dict(width_ratios=[1, 1.6] if timeline else [1]))
+    fig, axes = plt.subplots(
+        1,
+        2 if timeline else 1,
+        figsize=(12 if timeline else 6, 4.2),
+        squeeze=False,
+        gridspec_kw=dict(width_ratios=[1, 1.6] if timeline else [1]),
+    )
     ax = axes[0, 0]
     y = np.arange(len(ROLES))
     ax.barh(y - 0.2, rs['model'], 0.4, color='tab:green', label=f'model ({rec.pooling} pooling)')
@@ -470,8 +535,14 @@ def plot_pool_weights(rec: Record, episode: int = 0, max_nodes: int = 40, title:
         order = np.lexsort((rec.node_type[episode, :T].max(0)[nodes], ~goal_rows))
         nodes, goal_rows = nodes[order][:max_nodes], goal_rows[order][:max_nodes]
         labels = [_class_label(c) for c in rec.category[episode, :T][:, nodes].max(0)]
-        im = ax.imshow(share[:, nodes].T, aspect='auto', cmap='magma_r', vmin=0,
-                       vmax=max(float(share.max(initial=0)), 1e-6), interpolation='nearest')
+        im = ax.imshow(
+            share[:, nodes].T,
+            aspect='auto',
+            cmap='magma_r',
+            vmin=0,
+            vmax=max(float(share.max(initial=0)), 1e-6),
+            interpolation='nearest',
+        )
         ax.set_yticks(np.arange(len(nodes)), labels, fontsize=6)
         for t, g in zip(ax.get_yticklabels(), goal_rows):
             t.set_color('r' if g else 'k')
@@ -484,8 +555,9 @@ def plot_pool_weights(rec: Record, episode: int = 0, max_nodes: int = 40, title:
     return fig
 
 
-def plot_graph_on_map(rec: Record, episode: int = 0, step: int | None = None, layer: int = -1,
-                      ax=None, title: str | None = None):
+def plot_graph_on_map(
+    rec: Record, episode: int = 0, step: int | None = None, layer: int = -1, ax=None, title: str | None = None
+):
     """The scene graph of one step drawn at its nodes' world positions: over the top-down house
     map (navigation; trajectory so far in magenta, agent arrow) or the choice canvas. Nodes are
     coloured by the HGT attention they receive in `layer` relative to uniform attention (log2;
@@ -509,19 +581,22 @@ def plot_graph_on_map(rec: Record, episode: int = 0, step: int | None = None, la
         ax.set_aspect('equal')
     else:
         from hron_jax.scenes.plot import plot_topdown
+
         plot_topdown(rec.env.scene, ax, labels=False, slots=False, objects=False)
-        poses = rec.pose[b, :t + 1]
+        poses = rec.pose[b, : t + 1]
         ax.plot(poses[:, 0], poses[:, 1], '-', color='m', lw=1.0, alpha=0.7, zorder=15)
         p = rec.pose[b, t]
-        ax.arrow(p[0], p[1], 0.45 * np.cos(p[2]), 0.45 * np.sin(p[2]), width=0.07, color='m',
-                 zorder=16)
+        ax.arrow(p[0], p[1], 0.45 * np.cos(p[2]), 0.45 * np.sin(p[2]), width=0.07, color='m', zorder=16)
     if rec.num_layers:
         received, uniform = node_attention(rec)
         r, u = received[b, t, layer], uniform[b, t]
         value = np.where(u > 0, np.log2(np.maximum(r, 1e-6) / np.maximum(u, 1e-6)), 0.0)
         lim = max(1.0, float(np.abs(value[live_nodes]).max(initial=0)))
-        norm, cmap, label = TwoSlopeNorm(0.0, -lim, lim), 'coolwarm', \
-            f'log2(received attention / uniform), layer {layer % rec.num_layers}'
+        norm, cmap, label = (
+            TwoSlopeNorm(0.0, -lim, lim),
+            'coolwarm',
+            f'log2(received attention / uniform), layer {layer % rec.num_layers}',
+        )
         a_e = rec.alpha[b, t, layer].mean(-1)
     else:
         value = pool_shares(rec)['model'][b, t]
@@ -529,26 +604,38 @@ def plot_graph_on_map(rec: Record, episode: int = 0, step: int | None = None, la
         a_e = uniform_alpha(rec)[b, t]
     for e in np.nonzero(live)[0]:
         s, r_ = rec.senders[b, t, e], rec.receivers[b, t, e]
-        ax.plot(*zip(xy[s], xy[r_]), '-', color='0.3', lw=0.3 + 2.5 * float(a_e[e]), alpha=0.6,
-                zorder=17)
+        ax.plot(*zip(xy[s], xy[r_]), '-', color='0.3', lw=0.3 + 2.5 * float(a_e[e]), alpha=0.6, zorder=17)
     sc = None
     goal = rec.is_goal[b, t]
     for nt, marker in NODE_TYPE_MARKERS.items():
         m = live_nodes & (rec.node_type[b, t] == nt)
         if not m.any():
             continue
-        sc = ax.scatter(xy[m, 0], xy[m, 1], c=value[m], cmap=cmap, norm=norm, marker=marker,
-                        s=NODE_TYPE_SIZES[nt], edgecolors=np.where(goal[m], 'r', 'k').tolist(),
-                        linewidths=np.where(goal[m], 2.0, 0.5), zorder=18,
-                        vmin=None if norm is not None else 0.0)
+        sc = ax.scatter(
+            xy[m, 0],
+            xy[m, 1],
+            c=value[m],
+            cmap=cmap,
+            norm=norm,
+            marker=marker,
+            s=NODE_TYPE_SIZES[nt],
+            edgecolors=np.where(goal[m], 'r', 'k').tolist(),
+            linewidths=np.where(goal[m], 2.0, 0.5),
+            zorder=18,
+            vmin=None if norm is not None else 0.0,
+        )
     if sc is not None:
         plt.colorbar(sc, ax=ax, fraction=0.04, label=label)
     from hron_jax.goals import decode_goal
+
     words = ' '.join(w for w in decode_goal(np.asarray(rec.states.obs['goal'][b])) if w)
-    ax.set_title(title if title is not None else
-                 f'episode {b}, step {t}: goal "{words}" ({"success" if rec.success[b] > 0.5 else "failure"})'
-                 '\nsquares rooms, diamonds furniture, dots objects; red ring: goal category',
-                 fontsize=8)
+    ax.set_title(
+        title
+        if title is not None
+        else f'episode {b}, step {t}: goal "{words}" ({"success" if rec.success[b] > 0.5 else "failure"})'
+        '\nsquares rooms, diamonds furniture, dots objects; red ring: goal category',
+        fontsize=8,
+    )
     if fig is not None:
         fig.tight_layout()
     return fig if fig is not None else ax.figure
@@ -571,15 +658,19 @@ def plot_goal_concentration(records: dict, layer: int = -1, title: str = ''):
             colours.append(c)
         ticks.append(3 * i + 0.5)
     _boxes(a0, data, pos, colours)
-    a0.set_xticks(ticks, [f'{k}\n({100 * stats[k]["with_goal"]:.0f} % of steps)' for k in labels],
-                  fontsize=8)
+    a0.set_xticks(ticks, [f'{k}\n({100 * stats[k]["with_goal"]:.0f} % of steps)' for k in labels], fontsize=8)
     a0.set_ylabel('pooled share from goal-category nodes')
     a0.set_title('steps with a goal-category node in the graph', fontsize=9)
     a0.set_ylim(-0.03, 1.03)
-    a0.legend(handles=[plt.Rectangle((0, 0), 1, 1, color='tab:green', alpha=0.6),
-                       plt.Rectangle((0, 0), 1, 1, color='tab:gray', alpha=0.6)],
-              labels=[f'model ({next(iter(records.values())).pooling} pooling)', 'mean pooling'],
-              fontsize=7, loc='center right')
+    a0.legend(
+        handles=[
+            plt.Rectangle((0, 0), 1, 1, color='tab:green', alpha=0.6),
+            plt.Rectangle((0, 0), 1, 1, color='tab:gray', alpha=0.6),
+        ],
+        labels=[f'model ({next(iter(records.values())).pooling} pooling)', 'mean pooling'],
+        fontsize=7,
+        loc='center right',
+    )
     a0.grid(axis='y', alpha=0.3)
     data, pos, colours = [], [], []
     for i, k in enumerate(labels):
@@ -590,9 +681,14 @@ def plot_goal_concentration(records: dict, layer: int = -1, title: str = ''):
     if any(np.size(d) for d in data):
         _boxes(a1, data, pos, colours)
         a1.axhline(0.0, color='k', lw=0.8)
-        a1.legend(handles=[plt.Rectangle((0, 0), 1, 1, color='tab:red', alpha=0.6),
-                           plt.Rectangle((0, 0), 1, 1, color='tab:blue', alpha=0.6)],
-                  labels=['goal-category nodes', 'other nodes'], fontsize=7)
+        a1.legend(
+            handles=[
+                plt.Rectangle((0, 0), 1, 1, color='tab:red', alpha=0.6),
+                plt.Rectangle((0, 0), 1, 1, color='tab:blue', alpha=0.6),
+            ],
+            labels=['goal-category nodes', 'other nodes'],
+            fontsize=7,
+        )
     else:
         a1.text(0.5, 0.5, 'no HGT attention', ha='center', va='center', transform=a1.transAxes)
     a1.set_xticks(ticks, labels, fontsize=8)
@@ -610,9 +706,13 @@ def _boxes(ax, data, positions, colours):
     keep = [i for i, d in enumerate(data) if np.size(d)]
     if not keep:
         return
-    bp = ax.boxplot([np.asarray(data[i], np.float64) for i in keep],
-                    positions=[positions[i] for i in keep], widths=0.8, patch_artist=True,
-                    showfliers=False)
+    bp = ax.boxplot(
+        [np.asarray(data[i], np.float64) for i in keep],
+        positions=[positions[i] for i in keep],
+        widths=0.8,
+        patch_artist=True,
+        showfliers=False,
+    )
     for patch, i in zip(bp['boxes'], keep):
         patch.set_facecolor(colours[i])
         patch.set_alpha(0.6)

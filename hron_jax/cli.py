@@ -11,6 +11,7 @@
 Every option maps to one dotted field of the run config (hron_jax.run_config), which checks all
 values in one place; a bad value prints `train.py: error: --OPTION: what is wrong` and exits 2.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,10 +20,18 @@ import signal
 import sys
 from pathlib import Path
 
-from hron_jax.errors import CheckpointError, ConfigError, NonFiniteError, UsageError
-from hron_jax.run_config import (DEFAULT_MODEL, DEFAULT_TASK, MODELS, TASK_DEFAULTS, TrainConfig,
-                                 default_run_dir, make_config, override)
 from hron_jax.envs import TASKS
+from hron_jax.errors import CheckpointError, ConfigError, NonFiniteError, UsageError
+from hron_jax.run_config import (
+    DEFAULT_MODEL,
+    DEFAULT_TASK,
+    MODELS,
+    TASK_DEFAULTS,
+    TrainConfig,
+    default_run_dir,
+    make_config,
+    override,
+)
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -35,13 +44,29 @@ class ArgumentParser(argparse.ArgumentParser):
 # CLI option (argparse dest) -> dotted run-config field. --env-option / --model-option NAME=VALUE
 # set 'env.NAME' / 'network.NAME'.
 FIELDS = {
-    'task': 'task', 'model': 'model', 'scene': 'scene', 'distractors': 'env.distractors',
-    'premap': 'env.premap', 'seed': 'seed', 'num_seeds': 'num_seeds', 'log_every': 'log_every',
-    'checkpoint_every': 'checkpoint_every', 'keep_checkpoints': 'keep_checkpoints',
-    'fast_compile': 'fast_compile', 'num_envs': 'ppo.num_envs', 'total_steps': 'ppo.total_timesteps',
-    'num_steps': 'ppo.num_steps', 'epochs': 'ppo.update_epochs', 'minibatches': 'ppo.num_minibatches',
-    'lr': 'ppo.lr', 'anneal_lr': 'ppo.anneal_lr', 'gamma': 'ppo.gamma', 'gae_lambda': 'ppo.gae_lambda',
-    'clip_eps': 'ppo.clip_eps', 'ent_coef': 'ppo.ent_coef', 'vf_coef': 'ppo.vf_coef',
+    'task': 'task',
+    'model': 'model',
+    'scene': 'scene',
+    'distractors': 'env.distractors',
+    'premap': 'env.premap',
+    'seed': 'seed',
+    'num_seeds': 'num_seeds',
+    'log_every': 'log_every',
+    'checkpoint_every': 'checkpoint_every',
+    'keep_checkpoints': 'keep_checkpoints',
+    'fast_compile': 'fast_compile',
+    'num_envs': 'ppo.num_envs',
+    'total_steps': 'ppo.total_timesteps',
+    'num_steps': 'ppo.num_steps',
+    'epochs': 'ppo.update_epochs',
+    'minibatches': 'ppo.num_minibatches',
+    'lr': 'ppo.lr',
+    'anneal_lr': 'ppo.anneal_lr',
+    'gamma': 'ppo.gamma',
+    'gae_lambda': 'ppo.gae_lambda',
+    'clip_eps': 'ppo.clip_eps',
+    'ent_coef': 'ppo.ent_coef',
+    'vf_coef': 'ppo.vf_coef',
     'max_grad_norm': 'ppo.max_grad_norm',
 }
 _OPTION_PREFIXES = {'env_option': 'env.', 'model_option': 'network.'}
@@ -54,7 +79,7 @@ def option_name(field: str) -> str:
             return '--' + dest.replace('_', '-')
     for dest, prefix in _OPTION_PREFIXES.items():
         if field.startswith(prefix):
-            return f'--{dest.replace("_", "-")} {field[len(prefix):]}'
+            return f'--{dest.replace("_", "-")} {field[len(prefix) :]}'
     return field
 
 
@@ -86,61 +111,97 @@ def config_from_args(args: dict, base: TrainConfig | None = None) -> TrainConfig
         return make_config(args.get('task', DEFAULT_TASK), args.get('model', DEFAULT_MODEL), overrides)
     for dest in ('task', 'model'):
         if dest in args and args[dest] != getattr(base, dest):
-            raise UsageError(f'--{dest} {args[dest]}: the run to resume is {dest} '
-                             f'{getattr(base, dest)}; drop --{dest}')
+            raise UsageError(
+                f'--{dest} {args[dest]}: the run to resume is {dest} {getattr(base, dest)}; drop --{dest}'
+            )
     return override(base, overrides)
 
 
 def _defaults_epilog() -> str:
-    lines = ['per-task defaults (hron_jax.run_config.TASK_DEFAULTS; the paper: rollout 4096, minibatch '
-             '128, 30 epochs, lr 1e-4, gamma 0.99, lambda 0.9):']
+    lines = [
+        'per-task defaults (hron_jax.run_config.TASK_DEFAULTS; the paper: rollout 4096, minibatch '
+        '128, 30 epochs, lr 1e-4, gamma 0.99, lambda 0.9):'
+    ]
     for task, d in TASK_DEFAULTS.items():
         p = d['ppo']
-        lines.append(f'  {task:12s} num-envs {p.num_envs}, num-steps {p.num_steps}, epochs '
-                     f'{p.update_epochs}, minibatches {p.num_minibatches}, lr {p.lr:g}, gamma '
-                     f'{p.gamma:g}, gae-lambda {p.gae_lambda:g}, ent-coef {p.ent_coef:g}, total-steps '
-                     f'{p.total_timesteps:,}, log-every {d["log_every"]}, checkpoint-every '
-                     f'{d["checkpoint_every"]}')
+        lines.append(
+            f'  {task:12s} num-envs {p.num_envs}, num-steps {p.num_steps}, epochs '
+            f'{p.update_epochs}, minibatches {p.num_minibatches}, lr {p.lr:g}, gamma '
+            f'{p.gamma:g}, gae-lambda {p.gae_lambda:g}, ent-coef {p.ent_coef:g}, total-steps '
+            f'{p.total_timesteps:,}, log-every {d["log_every"]}, checkpoint-every '
+            f'{d["checkpoint_every"]}'
+        )
     return '\n'.join(lines)
 
 
 def build_parser(prog: str = 'train.py') -> argparse.ArgumentParser:
-    S = argparse.SUPPRESS   # unset options stay absent: task defaults or the resumed config apply
-    p = ArgumentParser(prog=prog, argument_default=S, description=(
-        'Train a HRON policy with PPO (all seeds in one jitted program). Options left out take '
-        'the per-task defaults of hron_jax.run_config.TASK_DEFAULTS, or on --resume the run\'s '
-        'config.json.'), epilog=_defaults_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    S = argparse.SUPPRESS  # unset options stay absent: task defaults or the resumed config apply
+    p = ArgumentParser(
+        prog=prog,
+        argument_default=S,
+        description=(
+            'Train a HRON policy with PPO (all seeds in one jitted program). Options left out take '
+            'the per-task defaults of hron_jax.run_config.TASK_DEFAULTS, or on --resume the run\'s '
+            'config.json.'
+        ),
+        epilog=_defaults_epilog(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     g = p.add_argument_group('run')
     g.add_argument('--task', choices=TASKS, help=f'task (default {DEFAULT_TASK})')
     g.add_argument('--model', choices=MODELS, help=f'model variant (default {DEFAULT_MODEL})')
-    g.add_argument('--scene', help='scene MJCF (default: scenes/symmetric_room.xml for directed, '
-                                   'scenes/house.xml for exploratory)')
-    g.add_argument('--distractors', action=argparse.BooleanOptionalAction,
-                   help='add distractor objects (default off)')
-    g.add_argument('--premap', action=argparse.BooleanOptionalAction,
-                   help='pre-mapping: graph/map start with rooms + furniture (default off)')
+    g.add_argument(
+        '--scene',
+        help='scene MJCF (default: scenes/symmetric_room.xml for directed, scenes/house.xml for exploratory)',
+    )
+    g.add_argument(
+        '--distractors', action=argparse.BooleanOptionalAction, help='add distractor objects (default off)'
+    )
+    g.add_argument(
+        '--premap',
+        action=argparse.BooleanOptionalAction,
+        help='pre-mapping: graph/map start with rooms + furniture (default off)',
+    )
     g.add_argument('--num-envs', type=int, help='parallel envs per seed (default 64)')
     g.add_argument('--total-steps', type=int, help='env steps per seed (default per task)')
     g.add_argument('--seed', type=int, help='seed of the first run (default 0)')
     g.add_argument('--num-seeds', type=int, help='seeds seed..seed+N-1 trained together (default 1)')
     g.add_argument('--out', help='run directory (default runs/<task>_<model>_..._<timestamp>)')
-    g.add_argument('--resume', metavar='RUN_DIR', help='continue this run exactly where its last '
-                   'checkpoint left off (other options must match its config.json)')
+    g.add_argument(
+        '--resume',
+        metavar='RUN_DIR',
+        help='continue this run exactly where its last '
+        'checkpoint left off (other options must match its config.json)',
+    )
     g.add_argument('--log-every', type=int, help='updates per jitted chunk = per log row')
     g.add_argument('--checkpoint-every', type=int, help='updates between checkpoints')
     g.add_argument('--keep-checkpoints', type=int, help='checkpoints kept (default 3)')
-    g.add_argument('--env-option', action='append', metavar='NAME=VALUE',
-                   help='env config field (NavConfig / ChoiceConfig; dotted into sub-configs, e.g. '
-                        'max_steps=300, camera.width=64, or image_size=64 for a square camera); '
-                        'repeatable')
-    g.add_argument('--model-option', action='append', metavar='NAME=VALUE',
-                   help='ModelConfig field, e.g. hidden=64 or cnn_fc=128,64,64; repeatable')
+    g.add_argument(
+        '--env-option',
+        action='append',
+        metavar='NAME=VALUE',
+        help='env config field (NavConfig / ChoiceConfig; dotted into sub-configs, e.g. '
+        'max_steps=300, camera.width=64, or image_size=64 for a square camera); '
+        'repeatable',
+    )
+    g.add_argument(
+        '--model-option',
+        action='append',
+        metavar='NAME=VALUE',
+        help='ModelConfig field, e.g. hidden=64 or cnn_fc=128,64,64; repeatable',
+    )
     g.add_argument('--no-progress', action='store_true', help='no progress bar')
-    g.add_argument('--fast-compile', action=argparse.BooleanOptionalAction,
-                   help='XLA without LLVM optimisation: ~3x faster compiles, ~2.7x slower steps '
-                        '(tests, debugging)')
-    g.add_argument('--compile-cache', metavar='DIR', help='persistent XLA compilation cache '
-                   "(default ~/.cache/hron_jax/xla or $JAX_COMPILATION_CACHE_DIR; 'none' disables)")
+    g.add_argument(
+        '--fast-compile',
+        action=argparse.BooleanOptionalAction,
+        help='XLA without LLVM optimisation: ~3x faster compiles, ~2.7x slower steps (tests, debugging)',
+    )
+    g.add_argument(
+        '--compile-cache',
+        metavar='DIR',
+        help='persistent XLA compilation cache '
+        "(default ~/.cache/hron_jax/xla or $JAX_COMPILATION_CACHE_DIR; 'none' disables)",
+    )
     h = p.add_argument_group('PPO (defaults per task)')
     h.add_argument('--num-steps', type=int, help='rollout length per env per update')
     h.add_argument('--epochs', type=int, help='PPO epochs per update')
@@ -166,22 +227,24 @@ def tune_malloc() -> bool:
     train / eval / bench entry points; returns False where there is no glibc (nothing changes).
     """
     import ctypes
+
     try:
         libc = ctypes.CDLL('libc.so.6')
         mallopt = libc.mallopt
     except (OSError, AttributeError):
         return False
-    m_trim_threshold, m_mmap_max, m_arena_max = -1, -4, -8     # glibc malloc.h
-    return bool(mallopt(m_arena_max, 1) and mallopt(m_mmap_max, 0)
-                and mallopt(m_trim_threshold, 2 ** 31 - 1))
+    m_trim_threshold, m_mmap_max, m_arena_max = -1, -4, -8  # glibc malloc.h
+    return bool(mallopt(m_arena_max, 1) and mallopt(m_mmap_max, 0) and mallopt(m_trim_threshold, 2**31 - 1))
 
 
 def setup_compile_cache(path: str | None) -> None:
     """Persistent XLA cache, so a resumed (or repeated) run does not pay the compile again."""
     import jax
+
     if path is None:
         path = os.environ.get('JAX_COMPILATION_CACHE_DIR') or os.path.join(
-            os.path.expanduser('~'), '.cache', 'hron_jax', 'xla')
+            os.path.expanduser('~'), '.cache', 'hron_jax', 'xla'
+        )
     if path.lower() == 'none':
         return
     jax.config.update('jax_compilation_cache_dir', path)
@@ -204,8 +267,10 @@ class GracefulStop:
 
     def _handle(self, signum, frame):
         self.signum = signum
-        self._log(f'\n{signal.Signals(signum).name}: finishing the current chunk, then checkpointing '
-                  '(send it again to abort)')
+        self._log(
+            f'\n{signal.Signals(signum).name}: finishing the current chunk, then checkpointing '
+            '(send it again to abort)'
+        )
         for s, old in self._old.items():
             signal.signal(s, old)
 
@@ -219,25 +284,35 @@ class GracefulStop:
 
 def main(argv=None, prog: str = 'train.py') -> int:
     from hron_jax.training import Trainer, make_mesh
+
     tune_malloc()
     try:
         args = vars(build_parser(prog).parse_args(argv))
-    except SystemExit as e:   # --help, or a bad option (argparse has printed its one line)
+    except SystemExit as e:  # --help, or a bad option (argparse has printed its one line)
         return e.code
     log = lambda s: print(s, file=sys.stderr, flush=True)
     try:
-        if 'resume' in args and 'out' in args and os.path.abspath(args['out']) != os.path.abspath(args['resume']):
+        if (
+            'resume' in args
+            and 'out' in args
+            and os.path.abspath(args['out']) != os.path.abspath(args['resume'])
+        ):
             raise UsageError('give either --out or --resume, not both')
         from hron_jax.run_dir import load_config
+
         base = load_config(Path(args['resume'])) if 'resume' in args else None
         config = config_from_args(args, base)
         setup_compile_cache(args.get('compile_cache'))
         import absl.logging
-        absl.logging.set_verbosity(absl.logging.ERROR)   # orbax's INFO lines
-        make_mesh(config.ppo.num_envs)                   # device-count check before any build
-        run_dir = Path(args['resume']) if base is not None else Path(args.get('out') or default_run_dir(config))
-        trainer = Trainer(config, run_dir, resume=base is not None,
-                          progress=not args.get('no_progress', False), log=log)
+
+        absl.logging.set_verbosity(absl.logging.ERROR)  # orbax's INFO lines
+        make_mesh(config.ppo.num_envs)  # device-count check before any build
+        run_dir = (
+            Path(args['resume']) if base is not None else Path(args.get('out') or default_run_dir(config))
+        )
+        trainer = Trainer(
+            config, run_dir, resume=base is not None, progress=not args.get('no_progress', False), log=log
+        )
     except (UsageError, CheckpointError) as e:
         print(error_line(prog, e), file=sys.stderr)
         return 2 if isinstance(e, UsageError) else 1
@@ -251,8 +326,10 @@ def main(argv=None, prog: str = 'train.py') -> int:
         finally:
             trainer.close()
     if stop.signum is not None:
-        log(f'stopped at update {trainer.update} / {config.num_updates}; continue with: '
-            f'python {prog} --resume {run_dir}')
+        log(
+            f'stopped at update {trainer.update} / {config.num_updates}; continue with: '
+            f'python {prog} --resume {run_dir}'
+        )
         return 128 + stop.signum
     log(f'done: {trainer.update} updates; {run_dir}')
     return 0

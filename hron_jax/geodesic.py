@@ -95,6 +95,7 @@ ORACLE_FORWARD, ORACLE_LEFT, ORACLE_RIGHT, ORACLE_STOP = 0, 1, 2, 3
 # Occupancy grid
 # ----------------------------------------------------------------------------------------------
 
+
 @dataclasses.dataclass(frozen=True)
 class GridConfig:
     """How to rasterise a scene.
@@ -147,12 +148,11 @@ class OccupancyGrid:
     def supersample(self) -> int:
         return 1 if self.fine is None else self.fine.shape[0] // self.free.shape[0]
 
-    def los_grid(self) -> "OccupancyGrid":
+    def los_grid(self) -> OccupancyGrid:
         """The grid to test lines of sight against: the fine one when there is one."""
         if self.fine is None:
             return self
-        return OccupancyGrid(self.fine, self.origin, self.cell_size / self.supersample,
-                             self.agent_radius)
+        return OccupancyGrid(self.fine, self.origin, self.cell_size / self.supersample, self.agent_radius)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -204,8 +204,12 @@ def _excluded_bodies(model: mujoco.MjModel, agent_body: str) -> np.ndarray:
     agent_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, agent_body)
     out = np.zeros(model.nbody, bool)
     for b in range(1, model.nbody):  # parents precede children in MuJoCo's body order
-        out[b] = (model.body_mocapid[b] >= 0 or model.body_dofnum[b] > 0 or b == agent_id
-                  or out[model.body_parentid[b]])
+        out[b] = (
+            model.body_mocapid[b] >= 0
+            or model.body_dofnum[b] > 0
+            or b == agent_id
+            or out[model.body_parentid[b]]
+        )
     return out
 
 
@@ -230,8 +234,14 @@ def _convex_hull(p: np.ndarray) -> np.ndarray:
     def half(seq):
         out = []
         for q in seq:
-            while len(out) >= 2 and ((out[-1][0] - out[-2][0]) * (q[1] - out[-2][1])
-                                     - (out[-1][1] - out[-2][1]) * (q[0] - out[-2][0])) <= 0:
+            while (
+                len(out) >= 2
+                and (
+                    (out[-1][0] - out[-2][0]) * (q[1] - out[-2][1])
+                    - (out[-1][1] - out[-2][1]) * (q[0] - out[-2][0])
+                )
+                <= 0
+            ):
                 out.pop()
             out.append(q)
         return out
@@ -255,8 +265,9 @@ def _dist_convex(p: np.ndarray, hull: np.ndarray) -> np.ndarray:
     a, b = hull, np.roll(hull, -1, axis=0)
     d = _dist_segments(p, a, b)
     if len(hull) >= 3:
-        cross = ((b - a)[None, :, 0] * (p[:, None, 1] - a[None, :, 1])
-                 - (b - a)[None, :, 1] * (p[:, None, 0] - a[None, :, 0]))
+        cross = (b - a)[None, :, 0] * (p[:, None, 1] - a[None, :, 1]) - (b - a)[None, :, 1] * (
+            p[:, None, 0] - a[None, :, 0]
+        )
         d = np.where((cross >= 0).all(-1), 0.0, d)
     return d
 
@@ -288,12 +299,15 @@ def _footprint(gtype, size, pos, rot):
             zh = abs(axis[2]) * hl + math.sqrt(max(0.0, 1.0 - axis[2] ** 2)) * r
         half_xy = np.abs(hl * axis[:2]) + r
         return zh, half_xy, lambda p: _dist_segments(p, a[None, :2], b[None, :2]) - r
-    raise ValueError(f"geodesic: unsupported geom type {mujoco.mjtGeom(gtype).name}; scenes use "
-                     "box, sphere and capsule only")
+    raise ValueError(
+        f"geodesic: unsupported geom type {mujoco.mjtGeom(gtype).name}; scenes use "
+        "box, sphere and capsule only"
+    )
 
 
-def occupancy_grid(model: mujoco.MjModel, data: mujoco.MjData | None = None,
-                   config: GridConfig = GridConfig()) -> OccupancyGrid:
+def occupancy_grid(
+    model: mujoco.MjModel, data: mujoco.MjData | None = None, config: GridConfig = GridConfig()
+) -> OccupancyGrid:
     """Rasterise the static obstacles of `model` into an OccupancyGrid inflated by the agent radius.
 
     data: an MjData after mj_forward (world poses); None runs mj_forward on a fresh one.
@@ -352,14 +366,14 @@ def occupancy_grid(model: mujoco.MjModel, data: mujoco.MjData | None = None,
         ii, jj = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1), indexing="ij")
         p = np.stack([xmin + (jj + 0.5) * h, ymin + (ii + 0.5) * h], -1).reshape(-1, 2)
         free[i0:i1, j0:j1] &= (dist(p) >= rad).reshape(ii.shape)
-    coarse = free[sup // 2::sup, sup // 2::sup].copy()
-    return OccupancyGrid(coarse, (float(xmin), float(ymin)), cell, rad,
-                         free if sup > 1 else None)
+    coarse = free[sup // 2 :: sup, sup // 2 :: sup].copy()
+    return OccupancyGrid(coarse, (float(xmin), float(ymin)), cell, rad, free if sup > 1 else None)
 
 
 # ----------------------------------------------------------------------------------------------
 # Distance fields
 # ----------------------------------------------------------------------------------------------
+
 
 def stencil_offsets(stencil: int = 48) -> tuple[tuple[int, int], ...]:
     """All (drow, dcol) moves of the stencil (8, 16, 32 or 48 of them)."""
@@ -443,7 +457,7 @@ def _sweep(d, masks, offsets, weights, reverse):
         prevp = jnp.pad(prev, ((0, 0), (side, side)), constant_values=jnp.inf)
         best = row
         for k, (dr, dc) in enumerate(offsets):  # unrolled: XLA fuses it into one loop
-            src = prevp[back - abs(dr), side - dc:side - dc + m]  # src[j] = d[i - dr, j - dc]
+            src = prevp[back - abs(dr), side - dc : side - dc + m]  # src[j] = d[i - dr, j - dc]
             best = jnp.minimum(best, jnp.where(mrow[k], src + weights[k], jnp.inf))
         return jnp.concatenate([prev[1:], best[None]]), best
 
@@ -485,8 +499,9 @@ def _solve(plan, free, init, max_rounds):
         d1 = one_round(d)
         return d1, jnp.any(d1 < d), it + 1
 
-    d, _, rounds = jax.lax.while_loop(lambda s: s[1] & (s[2] < max_rounds), body,
-                                      (d0, jnp.array(True), jnp.array(0, jnp.int32)))
+    d, _, rounds = jax.lax.while_loop(
+        lambda s: s[1] & (s[2] < max_rounds), body, (d0, jnp.array(True), jnp.array(0, jnp.int32))
+    )
     return d, rounds
 
 
@@ -498,8 +513,16 @@ def _as_init(sources):
 
 
 @partial(jax.jit, static_argnames=("stencil", "max_rounds", "return_rounds"))
-def distance_fields(free, sources, cell_size, *, fine=None, stencil: int = 48,
-                    max_rounds: int | None = None, return_rounds: bool = False):
+def distance_fields(
+    free,
+    sources,
+    cell_size,
+    *,
+    fine=None,
+    stencil: int = 48,
+    max_rounds: int | None = None,
+    return_rounds: bool = False,
+):
     """Geodesic distance fields for a batch of source sets sharing one grid.
 
     free: bool[H, W]; sources: bool[N, H, W] (True = distance 0) or f32[N, H, W] initial distances
@@ -516,12 +539,12 @@ def distance_fields(free, sources, cell_size, *, fine=None, stencil: int = 48,
     return (d, rounds) if return_rounds else d
 
 
-def distance_field(free, sources, cell_size, *, fine=None, stencil: int = 48,
-                   max_rounds: int | None = None):
+def distance_field(free, sources, cell_size, *, fine=None, stencil: int = 48, max_rounds: int | None = None):
     """Geodesic distance field f32[H, W] (metres) to the nearest source; see distance_fields.
     Jittable and vmappable (over free and / or sources)."""
-    return distance_fields(free, jnp.asarray(sources)[None], cell_size, fine=fine,
-                           stencil=stencil, max_rounds=max_rounds)[0]
+    return distance_fields(
+        free, jnp.asarray(sources)[None], cell_size, fine=fine, stencil=stencil, max_rounds=max_rounds
+    )[0]
 
 
 def grid_distance_fields(grid: OccupancyGrid, sources, *, stencil: int = 48):
@@ -549,14 +572,12 @@ def success_init(grid: OccupancyGrid, target_xy, success_radius: float = 1.0):
     clear = jnp.ones(r.shape, bool)
     for k in range(1, n + 1):  # a loop, not a [H, W, n] batch: one grid of samples at a time
         clear = clear & los.is_free(c + (k / n) * to_disk)
-    init = jnp.where(r <= success_radius, 0.0,
-                     jnp.where(near & clear, r - success_radius, jnp.inf))
+    init = jnp.where(r <= success_radius, 0.0, jnp.where(near & clear, r - success_radius, jnp.inf))
     return jnp.where(jnp.asarray(grid.free), init, jnp.inf).astype(jnp.float32)
 
 
 @partial(jax.jit, static_argnames=("success_radius", "stencil"))
-def target_fields(grid: OccupancyGrid, targets_xy, success_radius: float = 1.0, *,
-                  stencil: int = 48):
+def target_fields(grid: OccupancyGrid, targets_xy, success_radius: float = 1.0, *, stencil: int = 48):
     """f32[N, H, W]: geodesic distance (metres) to the success region of each target xy f32[N, 2]
     (free space within success_radius), one vmapped solve sharing the move masks."""
     # lax.map, not vmap: the inits' segment samples stay one grid at a time
@@ -568,11 +589,11 @@ def target_fields(grid: OccupancyGrid, targets_xy, success_radius: float = 1.0, 
 # Lookups and shortest-path following
 # ----------------------------------------------------------------------------------------------
 
+
 def _window(radius_cells: int) -> np.ndarray:
     """int32[K, 2] cell offsets within a disk of radius_cells (+0.5 so the ring is full)."""
     r = radius_cells
-    off = [(a, b) for a in range(-r, r + 1) for b in range(-r, r + 1)
-           if a * a + b * b <= (r + 0.5) ** 2]
+    off = [(a, b) for a in range(-r, r + 1) for b in range(-r, r + 1) if a * a + b * b <= (r + 0.5) ** 2]
     return np.array(off, np.int32)
 
 
@@ -584,8 +605,9 @@ def _lookup(field, rc, index):
         return _gather(field, rc, jnp.inf)
     h, w = field.shape[-2:]
     ok = (rc[..., 0] >= 0) & (rc[..., 0] < h) & (rc[..., 1] >= 0) & (rc[..., 1] < w)
-    return jnp.where(ok, field[index, jnp.clip(rc[..., 0], 0, h - 1),
-                               jnp.clip(rc[..., 1], 0, w - 1)], jnp.inf)
+    return jnp.where(
+        ok, field[index, jnp.clip(rc[..., 0], 0, h - 1), jnp.clip(rc[..., 1], 0, w - 1)], jnp.inf
+    )
 
 
 def _visible_candidates(field, grid, xy, radius_cells, samples, index):
@@ -641,8 +663,9 @@ def descent_direction(field, grid: OccupancyGrid, xy, *, index=None, window: int
     return direction, ok
 
 
-def oracle_action(field, grid: OccupancyGrid, xy, yaw, *, index=None, turn: float = math.pi / 6,
-                  window: int = 3):
+def oracle_action(
+    field, grid: OccupancyGrid, xy, yaw, *, index=None, turn: float = math.pi / 6, window: int = 3
+):
     """int32 oracle action for forward / turn-by-`turn` dynamics: ORACLE_STOP in a source cell or
     when no direction exists, ORACLE_FORWARD when the heading (yaw, radians, CCW from +x) is within
     turn / 2 of descent_direction, else ORACLE_LEFT (CCW) / ORACLE_RIGHT towards it.
@@ -652,6 +675,7 @@ def oracle_action(field, grid: OccupancyGrid, xy, yaw, *, index=None, turn: floa
     here = _lookup(field, grid.world_to_cell(xy), index)
     err = jnp.arctan2(direction[1], direction[0]) - yaw
     err = (err + jnp.pi) % (2 * jnp.pi) - jnp.pi
-    act = jnp.where(jnp.abs(err) <= turn / 2 + 1e-4, ORACLE_FORWARD,
-                    jnp.where(err > 0, ORACLE_LEFT, ORACLE_RIGHT))
+    act = jnp.where(
+        jnp.abs(err) <= turn / 2 + 1e-4, ORACLE_FORWARD, jnp.where(err > 0, ORACLE_LEFT, ORACLE_RIGHT)
+    )
     return jnp.where(ok & (here > 0), act, ORACLE_STOP).astype(jnp.int32)

@@ -12,6 +12,7 @@ Two views of a goal go into observations:
 
 All functions are jittable (integer inputs may be traced) and vmap over batches of goals.
 """
+
 from __future__ import annotations
 
 import jax.numpy as jnp
@@ -47,12 +48,14 @@ def _one_hot_or_zero(idx, size):
 
 def encode_goal(object_idx, relation_idx, furniture_idx, room_idx) -> jnp.ndarray:
     """f32[GOAL_DIM] concatenated one-hots; an index of -1 gives an all-zero block."""
-    return jnp.concatenate([
-        _one_hot_or_zero(object_idx, NUM_OBJECTS),
-        _one_hot_or_zero(relation_idx, NUM_RELATIONS),
-        _one_hot_or_zero(furniture_idx, NUM_FURNITURE),
-        _one_hot_or_zero(room_idx, NUM_ROOMS),
-    ])
+    return jnp.concatenate(
+        [
+            _one_hot_or_zero(object_idx, NUM_OBJECTS),
+            _one_hot_or_zero(relation_idx, NUM_RELATIONS),
+            _one_hot_or_zero(furniture_idx, NUM_FURNITURE),
+            _one_hot_or_zero(room_idx, NUM_ROOMS),
+        ]
+    )
 
 
 def _lookup(table, idx):
@@ -62,15 +65,18 @@ def _lookup(table, idx):
 
 def goal_classes(object_idx, furniture_idx, room_idx) -> jnp.ndarray:
     """i32[3] semantic class ids of the goal's object, furniture and room (-1 where absent)."""
-    return jnp.stack([
-        _lookup(OBJECT_CLASS, object_idx),
-        _lookup(FURNITURE_CLASS, furniture_idx),
-        _lookup(ROOM_CLASS, room_idx),
-    ]).astype(jnp.int32)
+    return jnp.stack(
+        [
+            _lookup(OBJECT_CLASS, object_idx),
+            _lookup(FURNITURE_CLASS, furniture_idx),
+            _lookup(ROOM_CLASS, room_idx),
+        ]
+    ).astype(jnp.int32)
 
 
-def goal_indices(object: str | None, relation: str | None, furniture: str | None,
-                 room: str | None) -> tuple[int, int, int, int]:
+def goal_indices(
+    object: str | None, relation: str | None, furniture: str | None, room: str | None
+) -> tuple[int, int, int, int]:
     """Names -> vocabulary indices (None -> -1), for building goals outside jit."""
     return (
         -1 if object is None else V.index('object', object),

@@ -44,7 +44,7 @@ Pre-mapping (`premap=True`): rooms and furniture start discovered; objects never
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -60,10 +60,10 @@ from .scenes.loader import Scene, room_at
 class GraphConfig:
     """Static graph-builder settings (hashable)."""
 
-    max_nodes: Optional[int] = None  # N_MAX; None = the scene's node count
-    max_edges: Optional[int] = None  # E_MAX; None = the scene's edge capacity
-    min_pixels: int = 2              # pixels of one instance in one frame to discover it
-    detect_range: float = 6.0        # m; farther pixels do not count (a detector's range)
+    max_nodes: int | None = None  # N_MAX; None = the scene's node count
+    max_edges: int | None = None  # E_MAX; None = the scene's edge capacity
+    min_pixels: int = 2  # pixels of one instance in one frame to discover it
+    detect_range: float = 6.0  # m; farther pixels do not count (a detector's range)
 
 
 class Placement(NamedTuple):
@@ -81,15 +81,19 @@ class Placement(NamedTuple):
     relation: jax.Array
 
     @staticmethod
-    def empty(num_objects: int) -> "Placement":
-        return Placement(active=jnp.zeros((num_objects,), bool), pos=jnp.zeros((num_objects, 3)),
-                         furniture=jnp.full((num_objects,), -1, jnp.int32),
-                         relation=jnp.zeros((num_objects,), jnp.int32))
+    def empty(num_objects: int) -> Placement:
+        return Placement(
+            active=jnp.zeros((num_objects,), bool),
+            pos=jnp.zeros((num_objects, 3)),
+            furniture=jnp.full((num_objects,), -1, jnp.int32),
+            relation=jnp.zeros((num_objects,), jnp.int32),
+        )
 
 
 # vocabulary relation index -> (forward edge type, reverse edge type)
-_RELATION_EDGES = np.array([[GT.ON_TOP, GT.REV_ON_TOP], [GT.INSIDE, GT.REV_INSIDE], [GT.UNDER, GT.REV_UNDER]],
-                           np.int32)
+_RELATION_EDGES = np.array(
+    [[GT.ON_TOP, GT.REV_ON_TOP], [GT.INSIDE, GT.REV_INSIDE], [GT.UNDER, GT.REV_UNDER]], np.int32
+)
 assert V.RELATIONS == ("onTop", "inside", "under")
 
 
@@ -105,8 +109,10 @@ class GraphBuilder:
         self.object_offset = scene.num_rooms + scene.num_furniture
         n_max = config.max_nodes or n_real
         if n_max < n_real:
-            raise ValueError(f"GraphConfig.max_nodes={n_max} is smaller than the {n_real} instances of "
-                             f"{scene.path}; raise it or leave it None")
+            raise ValueError(
+                f"GraphConfig.max_nodes={n_max} is smaller than the {n_real} instances of "
+                f"{scene.path}; raise it or leave it None"
+            )
         self.max_nodes = n_max
 
         def pad(a, fill=0):
@@ -120,7 +126,7 @@ class GraphBuilder:
         self.category = jnp.asarray(pad(scene.category.astype(np.int32)))
         self.static_center = jnp.asarray(pad(scene.aabb_center.astype(np.float32)))
         half = scene.aabb_half.astype(np.float32).copy()
-        half[self.object_offset:] = V.OBJECT_HALF[scene.vocab_index[self.object_offset:]]
+        half[self.object_offset :] = V.OBJECT_HALF[scene.vocab_index[self.object_offset :]]
         self.static_half = jnp.asarray(pad(half))
         self.instance_room = jnp.asarray(pad(scene.instance_room.astype(np.int32), -1))
         self.is_room = self.real & (self.node_type == GT.ROOM)
@@ -132,15 +138,21 @@ class GraphBuilder:
         s, r, t = [], [], []
         for f in range(scene.num_rooms, self.object_offset):
             room = int(scene.instance_room[f])
-            s += [f, room]; r += [room, f]; t += [GT.IN_ROOM, GT.REV_IN_ROOM]
+            s += [f, room]
+            r += [room, f]
+            t += [GT.IN_ROOM, GT.REV_IN_ROOM]
         for a, b in zip(*np.nonzero(np.triu(scene.room_adjacency, 1))):
-            s += [a, b]; r += [b, a]; t += [GT.ROOM_CONNECTED] * 2
+            s += [a, b]
+            r += [b, a]
+            t += [GT.ROOM_CONNECTED] * 2
         self.num_static_edges = len(s)
         e_cap = self.num_static_edges + 4 * self.num_objects
         e_max = config.max_edges or e_cap
         if e_max < e_cap:
-            raise ValueError(f"GraphConfig.max_edges={e_max} is smaller than the {e_cap} possible edges of "
-                             f"{scene.path}; raise it or leave it None")
+            raise ValueError(
+                f"GraphConfig.max_edges={e_max} is smaller than the {e_cap} possible edges of "
+                f"{scene.path}; raise it or leave it None"
+            )
         self.max_edges = e_max
         self.static_senders = jnp.asarray(np.array(s, np.int32))
         self.static_receivers = jnp.asarray(np.array(r, np.int32))
@@ -153,8 +165,14 @@ class GraphBuilder:
         disc = self.premap_mask if self.premap else jnp.zeros_like(self.real)
         return disc | self._agent_room(pose)
 
-    def update(self, discovered: jax.Array, placement: Placement, pose: jax.Array,
-               instance: jax.Array, depth: jax.Array) -> jax.Array:
+    def update(
+        self,
+        discovered: jax.Array,
+        placement: Placement,
+        pose: jax.Array,
+        instance: jax.Array,
+        depth: jax.Array,
+    ) -> jax.Array:
         """Add what one frame shows. instance i32[H,W] (-1 none), depth f32[H,W] (m)."""
         valid = (instance >= 0) & (depth < self.config.detect_range)
         idx = jnp.where(valid, instance, 0).reshape(-1)
@@ -167,8 +185,11 @@ class GraphBuilder:
         return self.is_room & (jnp.arange(self.max_nodes) == room)
 
     def _node_active(self, placement: Placement):
-        obj_active = jnp.zeros((self.max_nodes,), bool).at[self.object_offset + jnp.arange(self.num_objects)].set(
-            placement.active)
+        obj_active = (
+            jnp.zeros((self.max_nodes,), bool)
+            .at[self.object_offset + jnp.arange(self.num_objects)]
+            .set(placement.active)
+        )
         return ~self.is_object | obj_active
 
     # ---- output -----------------------------------------------------------------------------
@@ -187,15 +208,15 @@ class GraphBuilder:
         # placed object is always in some room, so it must not float unconnected).
         has_furn = placement.furniture >= 0
         furn = jnp.maximum(placement.furniture, 0)
-        room = jnp.where(has_furn, self.instance_room[furn],
-                         room_at(self.room_floors, obj_pos[:, :2], jnp))
+        room = jnp.where(has_furn, self.instance_room[furn], room_at(self.room_floors, obj_pos[:, :2], jnp))
         rel = jnp.asarray(_RELATION_EDGES)[jnp.clip(placement.relation, 0, 2)]
         room_ok = placement.active & (room >= 0)
         room = jnp.maximum(room, 0)
         dyn_s = jnp.stack([obj, furn, obj, room], -1).reshape(-1)
         dyn_r = jnp.stack([furn, obj, room, obj], -1).reshape(-1)
-        dyn_t = jnp.stack([rel[:, 0], rel[:, 1], jnp.full_like(obj, GT.IN_ROOM),
-                           jnp.full_like(obj, GT.REV_IN_ROOM)], -1).reshape(-1)
+        dyn_t = jnp.stack(
+            [rel[:, 0], rel[:, 1], jnp.full_like(obj, GT.IN_ROOM), jnp.full_like(obj, GT.REV_IN_ROOM)], -1
+        ).reshape(-1)
         rel_ok = placement.active & has_furn
         dyn_ok = jnp.stack([rel_ok, rel_ok, room_ok, room_ok], -1).reshape(-1)
 
@@ -212,11 +233,17 @@ class GraphBuilder:
         # Zero every feature of rows that are not live (see the module docstring: no leaks).
         m3 = mask[:, None]
         return jraph.GraphsTuple(
-            nodes={'category': jnp.where(mask, self.category, 0),
-                   'node_type': jnp.where(mask, self.node_type, 0),
-                   'pos': jnp.where(m3, pos, 0.0), 'size': jnp.where(m3, self.static_half, 0.0),
-                   'mask': mask},
+            nodes={
+                'category': jnp.where(mask, self.category, 0),
+                'node_type': jnp.where(mask, self.node_type, 0),
+                'pos': jnp.where(m3, pos, 0.0),
+                'size': jnp.where(m3, self.static_half, 0.0),
+                'mask': mask,
+            },
             edges={'edge_type': etype, 'mask': live},
-            senders=senders, receivers=receivers,
-            n_node=jnp.array([self.max_nodes], jnp.int32), n_edge=jnp.array([self.max_edges], jnp.int32),
-            globals=None)
+            senders=senders,
+            receivers=receivers,
+            n_node=jnp.array([self.max_nodes], jnp.int32),
+            n_edge=jnp.array([self.max_edges], jnp.int32),
+            globals=None,
+        )

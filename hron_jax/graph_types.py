@@ -52,8 +52,9 @@ EDGE_TYPES: tuple[str, ...] = (
     "rev_inside",
     "rev_under",
 )
-(IN_ROOM, ROOM_CONNECTED, ON_TOP, INSIDE, UNDER,
- REV_IN_ROOM, REV_ON_TOP, REV_INSIDE, REV_UNDER) = range(len(EDGE_TYPES))
+(IN_ROOM, ROOM_CONNECTED, ON_TOP, INSIDE, UNDER, REV_IN_ROOM, REV_ON_TOP, REV_INSIDE, REV_UNDER) = range(
+    len(EDGE_TYPES)
+)
 NUM_EDGE_TYPES = len(EDGE_TYPES)
 
 # Edge type -> the edge type of the opposite direction.

@@ -50,10 +50,10 @@ from .sensors import CameraConfig, effective_rgba, world_rays
 
 @dataclasses.dataclass(frozen=True)
 class MapConfig:
-    cell: float = 0.23        # m, the paper's resolution
-    crop: int = 32            # M: egocentric crop side in cells (32 * 0.23 = 7.4 m)
-    max_height: float = 2.5   # m; heights are clipped to [0, max_height]
-    egocentric: bool = True   # observe an egocentric crop; False: the global map + agent heading
+    cell: float = 0.23  # m, the paper's resolution
+    crop: int = 32  # M: egocentric crop side in cells (32 * 0.23 = 7.4 m)
+    max_height: float = 2.5  # m; heights are clipped to [0, max_height]
+    egocentric: bool = True  # observe an egocentric crop; False: the global map + agent heading
 
 
 _NC = V.NUM_CLASSES
@@ -63,8 +63,9 @@ _MM = 1000.0  # heights stored in millimetres
 class MetricMap:
     """Static grid of one scene + pure functions `reset`, `update`, `observe`."""
 
-    def __init__(self, scene: Scene, camera: CameraConfig, config: MapConfig = MapConfig(),
-                 premap: bool = False):
+    def __init__(
+        self, scene: Scene, camera: CameraConfig, config: MapConfig = MapConfig(), premap: bool = False
+    ):
         """premap: start from the static scene seen from above (the paper's pre-mapping)."""
         self.config, self.camera = config, camera
         lo, hi = scene.bounds[0, :2], scene.bounds[1, :2]
@@ -90,7 +91,7 @@ class MetricMap:
         keys = np.round(z * _MM).astype(np.int64) * _NC + scene.geom_class
         key = np.full(self.shape, -1, np.int64)
         for g in np.nonzero(~is_object & visible & (hi[:, 2] >= -1e-6))[0]:
-            sub = key[i0[g, 0]:i1[g, 0], i0[g, 1]:i1[g, 1]]
+            sub = key[i0[g, 0] : i1[g, 0], i0[g, 1] : i1[g, 1]]
             np.maximum(sub, keys[g], out=sub)
         return key.astype(np.int32)
 
@@ -102,7 +103,7 @@ class MetricMap:
     def update(self, key: jax.Array, pose: jax.Array, depth: jax.Array, semantic: jax.Array) -> jax.Array:
         """Add one frame: depth f32[H,W] (z-depth, m), semantic i32[H,W] class ids."""
         o, dirs = world_rays(pose, self.camera)
-        pts = o + depth[..., None] * dirs                                   # (H, W, 3)
+        pts = o + depth[..., None] * dirs  # (H, W, 3)
         cell = jnp.floor((pts[..., :2] - self.origin) / self.config.cell).astype(jnp.int32)
         inside = jnp.all((cell >= 0) & (cell < jnp.array(self.shape)), -1)
         hit = (depth < self.camera.max_depth) & (semantic > V.NOTHING_CLASS) & inside
@@ -117,16 +118,19 @@ class MetricMap:
         if not self.config.egocentric:
             return self._observe_global(key, pose)
         m, c = self.config.crop, self.config.cell
-        ahead = (m / 2 - 0.5 - jnp.arange(m)) * c                       # rows: far ahead -> behind
-        left = (m / 2 - 0.5 - jnp.arange(m)) * c                        # cols: left -> right
+        ahead = (m / 2 - 0.5 - jnp.arange(m)) * c  # rows: far ahead -> behind
+        left = (m / 2 - 0.5 - jnp.arange(m)) * c  # cols: left -> right
         a, l = jnp.meshgrid(ahead, left, indexing="ij")
         cy, sy = jnp.cos(pose[2]), jnp.sin(pose[2])
         wx = pose[0] + a * cy - l * sy
         wy = pose[1] + a * sy + l * cy
         cell = jnp.floor((jnp.stack([wx, wy], -1) - self.origin) / c).astype(jnp.int32)
         inside = jnp.all((cell >= 0) & (cell < jnp.array(self.shape)), -1)
-        k = jnp.where(inside, key[jnp.clip(cell[..., 0], 0, self.shape[0] - 1),
-                                  jnp.clip(cell[..., 1], 0, self.shape[1] - 1)], -1)
+        k = jnp.where(
+            inside,
+            key[jnp.clip(cell[..., 0], 0, self.shape[0] - 1), jnp.clip(cell[..., 1], 0, self.shape[1] - 1)],
+            -1,
+        )
         return self._channels(k)
 
     def _channels(self, k: jax.Array) -> jax.Array:
@@ -137,7 +141,8 @@ class MetricMap:
 
     def _observe_global(self, key: jax.Array, pose: jax.Array) -> jax.Array:
         cell = jnp.floor((pose[:2] - self.origin) / self.config.cell).astype(jnp.int32)
-        at = ((jnp.arange(self.shape[0])[:, None] == cell[0])
-              & (jnp.arange(self.shape[1])[None, :] == cell[1]))[..., None]
+        at = (
+            (jnp.arange(self.shape[0])[:, None] == cell[0]) & (jnp.arange(self.shape[1])[None, :] == cell[1])
+        )[..., None]
         heading = jnp.where(at, jnp.stack([jnp.cos(pose[2]), jnp.sin(pose[2])]), 0.0).astype(jnp.float32)
         return jnp.concatenate([self._channels(key), heading], -1)

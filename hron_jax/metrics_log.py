@@ -8,6 +8,7 @@
 A resumed run rewinds the log to the update it resumes from (rows written after that checkpoint
 are replayed by the training that follows), so the files equal those of an uninterrupted run.
 """
+
 from __future__ import annotations
 
 import csv
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hron_jax.ppo import EPISODE_METRICS
+from hron_jax.envs.base import EPISODE_METRICS
 from hron_jax.run_dir import read_metrics
 
 
@@ -74,6 +75,7 @@ class MetricsLog:
         self.tb = None
         if tensorboard:
             from tensorboardX import SummaryWriter
+
             purge = None
             if resume_update is not None:
                 purge = (self.rows[-1]['env_steps'] + 1) if self.rows else 0
@@ -99,18 +101,22 @@ class MetricsLog:
             for row in self.rows:
                 w.writerow(['' if row.get(k) is None else row.get(k) for k in cols])
 
-    def append(self, update: int, summary: dict[str, np.ndarray], wall_time: float,
-               steps_per_s: float) -> dict:
-        row = {'update': int(update), 'env_steps': int(summary['env_steps'][0]),
-               'wall_time': round(wall_time, 3), 'steps_per_s': round(steps_per_s, 1),
-               'seeds': int(len(summary['env_steps']))}
+    def append(
+        self, update: int, summary: dict[str, np.ndarray], wall_time: float, steps_per_s: float
+    ) -> dict:
+        row = {
+            'update': int(update),
+            'env_steps': int(summary['env_steps'][0]),
+            'wall_time': round(wall_time, 3),
+            'steps_per_s': round(steps_per_s, 1),
+            'seeds': int(len(summary['env_steps'])),
+        }
         for k in sorted(summary):
             if k == 'env_steps':
                 continue
             mean, std = _nan_stats(summary[k])
             row[k], row[k + '_std'] = mean, std
-        row['per_seed'] = {k: [_num(x) for x in v] for k, v in sorted(summary.items())
-                           if k != 'env_steps'}
+        row['per_seed'] = {k: [_num(x) for x in v] for k, v in sorted(summary.items()) if k != 'env_steps'}
         new_cols = any(k not in self._columns() for k in row if k != 'per_seed')
         self.rows.append(row)
         with open(self.jsonl, 'a') as f:
@@ -119,8 +125,7 @@ class MetricsLog:
             self._rewrite_csv()
         else:
             with open(self.csv, 'a', newline='') as f:
-                csv.writer(f).writerow(['' if row.get(k) is None else row.get(k)
-                                        for k in self._columns()])
+                csv.writer(f).writerow(['' if row.get(k) is None else row.get(k) for k in self._columns()])
         if self.tb is not None:
             step = row['env_steps']
             for k, v in summary.items():
@@ -148,6 +153,7 @@ class MetricsLog:
 def plot_learning_curves(runs: dict[str, list[dict]], path, title: str = '') -> None:
     """SR and return vs env steps (per seed), mean +- std over seeds, one line per run label."""
     import matplotlib
+
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
@@ -160,7 +166,7 @@ def plot_learning_curves(runs: dict[str, list[dict]], path, title: str = '') -> 
             ok = np.isfinite(mean)
             if not ok.any():
                 continue
-            line, = ax.plot(x[ok], mean[ok], lw=1.5, label=label)
+            (line,) = ax.plot(x[ok], mean[ok], lw=1.5, label=label)
             s = np.nan_to_num(std[ok])
             ax.fill_between(x[ok], mean[ok] - s, mean[ok] + s, color=line.get_color(), alpha=0.2, lw=0)
     axes[0].set_ylabel('success rate (SR)')

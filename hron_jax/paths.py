@@ -1,15 +1,22 @@
-"""Where the repository's files are: its root, the scene directory, and repo-relative paths.
+"""Where the repository's files are: its root, the scenes (and each task's default), repo-relative
+paths. Imports no JAX.
 
 Scenes named in a run's config.json are stored relative to the repository root when they lie
 inside it (`portable_path`), so run directories survive moving the checkout; `resolve` turns
 such a path back into an absolute one.
 """
+
 from __future__ import annotations
 
 import os
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE_DIR = os.path.join(REPO_ROOT, 'scenes')
+# The scene each navigation task trains in by default.
+DEFAULT_SCENES = {
+    'directed': os.path.join(SCENE_DIR, 'symmetric_room.xml'),
+    'exploratory': os.path.join(SCENE_DIR, 'house.xml'),
+}
 
 
 def portable_path(path: str) -> str:

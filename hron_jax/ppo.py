@@ -33,10 +33,12 @@ epochs and minibatches.
 
 Everything is deterministic given the rng: chunked updates give the same result as one-shot training.
 """
+
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.custom_batching
@@ -52,16 +54,16 @@ from hron_jax.rollout import unroll
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
     num_envs: int = 8
-    num_steps: int = 128            # rollout length per env per update
+    num_steps: int = 128  # rollout length per env per update
     total_timesteps: int = 1_500_000
     update_epochs: int = 4
     num_minibatches: int = 4
     lr: float = 2.5e-4
-    anneal_lr: bool = False         # linear decay to 0 over all optimiser steps
+    anneal_lr: bool = False  # linear decay to 0 over all optimiser steps
     gamma: float = 0.99
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
-    clip_value: bool = True         # PPO2-style clipped value loss (same clip_eps)
+    clip_value: bool = True  # PPO2-style clipped value loss (same clip_eps)
     ent_coef: float = 0.01
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
@@ -69,14 +71,22 @@ class PPOConfig:
 
     def __post_init__(self):
         if min(self.num_envs, self.num_steps, self.num_minibatches) < 1:
-            raise ConfigError('num_envs' if self.num_envs < 1 else 'num_steps' if self.num_steps < 1
-                              else 'num_minibatches', 'must be >= 1')
+            raise ConfigError(
+                'num_envs' if self.num_envs < 1 else 'num_steps' if self.num_steps < 1 else 'num_minibatches',
+                'must be >= 1',
+            )
         if self.batch_size % self.num_minibatches:
-            raise ConfigError('num_minibatches', f'must divide the rollout num_envs * num_steps = '
-                              f'{self.batch_size}, got {self.num_minibatches}')
+            raise ConfigError(
+                'num_minibatches',
+                f'must divide the rollout num_envs * num_steps = '
+                f'{self.batch_size}, got {self.num_minibatches}',
+            )
         if self.num_updates < 1:
-            raise ConfigError('total_timesteps', f'must be at least one rollout (num_envs * '
-                              f'num_steps = {self.batch_size} steps), got {self.total_timesteps}')
+            raise ConfigError(
+                'total_timesteps',
+                f'must be at least one rollout (num_envs * '
+                f'num_steps = {self.batch_size} steps), got {self.total_timesteps}',
+            )
 
     @property
     def batch_size(self) -> int:
@@ -94,11 +104,12 @@ class PPOConfig:
 @struct.dataclass
 class RunnerState:
     """Everything training carries between updates (a checkpoint is exactly this pytree)."""
+
     params: Any
     opt_state: Any
-    env_state: Any      # batched EnvState, leading axis num_envs
+    env_state: Any  # batched EnvState, leading axis num_envs
     rng: jax.Array
-    update: jax.Array   # i32, number of updates done
+    update: jax.Array  # i32, number of updates done
 
 
 class Transition(NamedTuple):
@@ -114,10 +125,10 @@ class Transition(NamedTuple):
 
 
 class PPO(NamedTuple):
-    init: Callable          # rng -> RunnerState
+    init: Callable  # rng -> RunnerState
     update_chunk: Callable  # (RunnerState, n_updates: static int) -> (RunnerState, metrics)
-    train: Callable         # rng -> (RunnerState, metrics)
-    evaluate: Callable      # (params, rng, num_steps: static int, greedy: static bool) -> metrics
+    train: Callable  # rng -> (RunnerState, metrics)
+    evaluate: Callable  # (params, rng, num_steps: static int, greedy: static bool) -> metrics
     config: PPOConfig
 
 
@@ -128,6 +139,7 @@ def compute_gae(reward, value, done, truncation, final_value, last_value, gamma,
     value is dropped; on truncation the episode was cut, not ended, so the value of its real last obs
     (final_value) is bootstrapped instead.
     """
+
     def body(carry, t):
         adv_next, value_next = carry
         r, v, d, tr, fv = t
@@ -145,8 +157,10 @@ def _masked_episode_means(metrics: dict) -> dict:
     """Means of the episode metrics over steps where an episode ended (NaN if none did)."""
     mask = metrics['episode_done']
     count = mask.sum()
-    out = {k: jnp.where(count > 0, (metrics[k] * mask).sum() / jnp.maximum(count, 1.0), jnp.nan)
-           for k in EPISODE_METRICS}
+    out = {
+        k: jnp.where(count > 0, (metrics[k] * mask).sum() / jnp.maximum(count, 1.0), jnp.nan)
+        for k in EPISODE_METRICS
+    }
     out['episodes'] = count
     return out
 
@@ -155,7 +169,7 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
     if not (isinstance(env, AutoResetWrapper) or getattr(env, 'auto_reset', False)):
         env = AutoResetWrapper(env)
     num_opt_steps = config.num_updates * config.update_epochs * config.num_minibatches
-    lr = (optax.linear_schedule(config.lr, 0.0, num_opt_steps) if config.anneal_lr else config.lr)
+    lr = optax.linear_schedule(config.lr, 0.0, num_opt_steps) if config.anneal_lr else config.lr
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
     v_reset = jax.vmap(env.reset)
     v_step = jax.vmap(env.step)
@@ -175,13 +189,18 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         rng, k_params, k_env = jax.random.split(rng, 3)
         env_state = v_reset(jax.random.split(k_env, config.num_envs))
         params = init_params(k_params, env_state.obs)
-        return RunnerState(params=params, opt_state=tx.init(params), env_state=env_state, rng=rng,
-                           update=jnp.zeros((), jnp.int32))
+        return RunnerState(
+            params=params,
+            opt_state=tx.init(params),
+            env_state=env_state,
+            rng=rng,
+            update=jnp.zeros((), jnp.int32),
+        )
 
     def rollout(params, env_state, rng, num_steps, greedy=False):
         def policy(state, key):
             logits, value = apply(params, state.obs)
-            action = (jnp.argmax(logits, -1) if greedy else jax.random.categorical(key, logits))
+            action = jnp.argmax(logits, -1) if greedy else jax.random.categorical(key, logits)
             log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], -1)[:, 0]
             return action, {'log_prob': log_prob, 'value': value}
 
@@ -191,7 +210,8 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             final_value = jax.lax.cond(
                 jnp.any(truncation > 0),
                 lambda: apply(params, v_final_obs(nxt))[1] * truncation,
-                lambda: jnp.zeros_like(truncation))
+                lambda: jnp.zeros_like(truncation),
+            )
             return {'obs': state.obs, 'final_value': final_value}
 
         env_state, rng, traj = unroll(v_step, env_state, policy, rng, num_steps, record=record)
@@ -205,8 +225,9 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         ratio = jnp.exp(log_ratio)
         if config.normalize_advantages:
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-        pg_loss = -jnp.minimum(ratio * adv,
-                               jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * adv).mean()
+        pg_loss = -jnp.minimum(
+            ratio * adv, jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * adv
+        ).mean()
         v_err = jnp.square(value - target)
         if config.clip_value:
             v_clipped = mb.value + jnp.clip(value - mb.value, -config.clip_eps, config.clip_eps)
@@ -214,10 +235,15 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         value_loss = 0.5 * v_err.mean()
         entropy = -(jnp.exp(logp_all) * logp_all).sum(-1).mean()
         loss = pg_loss + config.vf_coef * value_loss - config.ent_coef * entropy
-        aux = {'loss': loss, 'pg_loss': pg_loss, 'value_loss': value_loss, 'entropy': entropy,
-               # k3 estimator of KL(old || new): non-negative, low variance.
-               'approx_kl': ((ratio - 1.0) - log_ratio).mean(),
-               'clip_frac': (jnp.abs(ratio - 1.0) > config.clip_eps).mean()}
+        aux = {
+            'loss': loss,
+            'pg_loss': pg_loss,
+            'value_loss': value_loss,
+            'entropy': entropy,
+            # k3 estimator of KL(old || new): non-negative, low variance.
+            'approx_kl': ((ratio - 1.0) - log_ratio).mean(),
+            'clip_frac': (jnp.abs(ratio - 1.0) > config.clip_eps).mean(),
+        }
         return loss, aux
 
     grad_fn = jax.grad(loss_fn, has_aux=True)
@@ -225,8 +251,16 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
     def one_update(runner: RunnerState, _):
         env_state, rng, traj = rollout(runner.params, runner.env_state, runner.rng, config.num_steps)
         _, last_value = apply(runner.params, env_state.obs)
-        adv, target = compute_gae(traj.reward, traj.value, traj.done, traj.truncation,
-                                  traj.final_value, last_value, config.gamma, config.gae_lambda)
+        adv, target = compute_gae(
+            traj.reward,
+            traj.value,
+            traj.done,
+            traj.truncation,
+            traj.final_value,
+            last_value,
+            config.gamma,
+            config.gae_lambda,
+        )
 
         # Flatten [T, B] -> [T*B]; the metrics are not needed by the loss.
         batch = (traj._replace(metrics={}), adv, target)
@@ -238,7 +272,10 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             perm = jax.random.permutation(k_perm, config.batch_size)
             mbs = jax.tree.map(
                 lambda x: jnp.take(x, perm, axis=0).reshape(
-                    (config.num_minibatches, config.minibatch_size) + x.shape[1:]), batch)
+                    (config.num_minibatches, config.minibatch_size) + x.shape[1:]
+                ),
+                batch,
+            )
 
             def minibatch(carry, mb):
                 params, opt_state = carry
@@ -250,15 +287,15 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             return (params, opt_state, rng), aux
 
         (params, opt_state, rng), aux = jax.lax.scan(
-            epoch, (runner.params, runner.opt_state, rng), None, length=config.update_epochs)
+            epoch, (runner.params, runner.opt_state, rng), None, length=config.update_epochs
+        )
 
         metrics = {k: v.mean() for k, v in aux.items()}
         metrics.update(_masked_episode_means(traj.metrics))
         metrics['reward'] = traj.reward.mean()
         update = runner.update + 1
         metrics['env_steps'] = (update * config.batch_size).astype(jnp.float32)
-        runner = RunnerState(params=params, opt_state=opt_state, env_state=env_state, rng=rng,
-                             update=update)
+        runner = RunnerState(params=params, opt_state=opt_state, env_state=env_state, rng=rng, update=update)
         return runner, metrics
 
     def update_chunk(runner: RunnerState, n_updates: int):

@@ -23,18 +23,28 @@ extras and record's fields under their own names (a name used twice is an error)
 
 Everything is pure and jittable (lax.scan over a static num_steps); vmap it over episodes or seeds.
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 
-def unroll(step: Callable, state, policy: Callable, key: jax.Array, num_steps: int, *,
-           record: Callable | None = None, actions=None):
+def unroll(
+    step: Callable,
+    state,
+    policy: Callable,
+    key: jax.Array,
+    num_steps: int,
+    *,
+    record: Callable | None = None,
+    actions=None,
+):
     """Run `num_steps` steps; returns (final state, final key, traj). See the module docstring."""
+
     def body(carry, scripted):
         state, key = carry
         key, k = jax.random.split(key)
@@ -42,8 +52,13 @@ def unroll(step: Callable, state, policy: Callable, key: jax.Array, num_steps: i
         if scripted is not None:
             action = jnp.where(scripted >= 0, scripted, action).astype(jnp.int32)
         nxt = step(state, action)
-        out = dict(action=action, reward=nxt.reward, done=nxt.done,
-                   truncation=nxt.info['truncation'], metrics=nxt.metrics)
+        out = dict(
+            action=action,
+            reward=nxt.reward,
+            done=nxt.done,
+            truncation=nxt.info['truncation'],
+            metrics=nxt.metrics,
+        )
         fields = [extras] + ([record(state, action, extras, nxt)] if record is not None else [])
         for more in fields:
             clash = set(out) & set(more)

@@ -16,6 +16,7 @@ e.g. minibatches dividing the rollout), and sets the fields that follow from oth
 (DERIVED: an override may only repeat their value). Every failure is a ConfigError naming the
 dotted field, which the CLI turns into the option it came from.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -47,23 +48,51 @@ from hron_jax.ppo import PPOConfig
 # gamma / lambda do not matter; with these defaults the main model reaches SR 1.0 (no distractors)
 # within ~10 k steps (measured: 0.51 / 0.81 / 0.91 / 1.0 after 2.6 / 5.1 / 7.7 / 10.2 k steps).
 # ------------------------------------------------------------------------------------------------
-_NAV_PPO = PPOConfig(num_envs=64, num_steps=64, total_timesteps=1_500_000, update_epochs=4,
-                     num_minibatches=32, lr=2.5e-4, gamma=0.99, gae_lambda=0.9, clip_eps=0.2,
-                     ent_coef=0.01, vf_coef=0.5, max_grad_norm=0.5)
+_NAV_PPO = PPOConfig(
+    num_envs=64,
+    num_steps=64,
+    total_timesteps=1_500_000,
+    update_epochs=4,
+    num_minibatches=32,
+    lr=2.5e-4,
+    gamma=0.99,
+    gae_lambda=0.9,
+    clip_eps=0.2,
+    ent_coef=0.01,
+    vf_coef=0.5,
+    max_grad_norm=0.5,
+)
 TASK_DEFAULTS: dict[str, dict] = {
     # log_every: updates per jitted chunk (one progress / log row each); checkpoint_every: updates.
-    'choice': dict(ppo=PPOConfig(num_envs=64, num_steps=4, total_timesteps=200_000, update_epochs=4,
-                                 num_minibatches=4, lr=3e-4, gamma=0.99, gae_lambda=0.9,
-                                 ent_coef=0.01),
-                   log_every=10, checkpoint_every=200),
+    'choice': dict(
+        ppo=PPOConfig(
+            num_envs=64,
+            num_steps=4,
+            total_timesteps=200_000,
+            update_epochs=4,
+            num_minibatches=4,
+            lr=3e-4,
+            gamma=0.99,
+            gae_lambda=0.9,
+            ent_coef=0.01,
+        ),
+        log_every=10,
+        checkpoint_every=200,
+    ),
     'directed': dict(ppo=_NAV_PPO, log_every=1, checkpoint_every=20),
     'exploratory': dict(ppo=_NAV_PPO, log_every=1, checkpoint_every=20),
 }
 DEFAULT_TASK = 'exploratory'
 DEFAULT_MODEL = 'rgbd_sg_attn'
 MODELS = tuple(VARIANTS)
-LABELS = {'rgbd': 'RGB-D only', 'rgbd_mm': 'RGB-D + MM', 'rgbd_sg': 'RGB-D + SG',
-          'rgbd_sg_attn': 'RGB-D + SG + TD ATTN', 'gcn': 'Kipf et al. (GCN)', 'yang': 'Yang et al.'}
+LABELS = {
+    'rgbd': 'RGB-D only',
+    'rgbd_mm': 'RGB-D + MM',
+    'rgbd_sg': 'RGB-D + SG',
+    'rgbd_sg_attn': 'RGB-D + SG + TD ATTN',
+    'gcn': 'Kipf et al. (GCN)',
+    'yang': 'Yang et al.',
+}
 
 # Valid values of the numeric fields a user sets (dotted path -> (description, test)); fields not
 # listed still pass the generic rules of `_check_value`.
@@ -72,29 +101,51 @@ _NON_NEGATIVE = ('>= 0', lambda v: v >= 0)
 _POSITIVE = ('> 0', lambda v: v > 0)
 _UNIT = ('in [0, 1]', lambda v: 0 <= v <= 1)
 RANGES: dict[str, tuple[str, Any]] = {
-    'seed': ('in [0, 2**31)', lambda v: 0 <= v < 2 ** 31),
-    'num_seeds': _AT_LEAST_1, 'log_every': _AT_LEAST_1, 'checkpoint_every': _AT_LEAST_1,
+    'seed': ('in [0, 2**31)', lambda v: 0 <= v < 2**31),
+    'num_seeds': _AT_LEAST_1,
+    'log_every': _AT_LEAST_1,
+    'checkpoint_every': _AT_LEAST_1,
     'keep_checkpoints': _AT_LEAST_1,
-    'ppo.num_envs': _AT_LEAST_1, 'ppo.num_steps': _AT_LEAST_1, 'ppo.total_timesteps': _AT_LEAST_1,
-    'ppo.update_epochs': _AT_LEAST_1, 'ppo.num_minibatches': _AT_LEAST_1, 'ppo.lr': _POSITIVE,
-    'ppo.gamma': _UNIT, 'ppo.gae_lambda': _UNIT, 'ppo.clip_eps': _POSITIVE,
-    'ppo.ent_coef': _NON_NEGATIVE, 'ppo.vf_coef': _NON_NEGATIVE, 'ppo.max_grad_norm': _POSITIVE,
-    'env.max_steps': _AT_LEAST_1, 'env.success_distance': _POSITIVE,
-    'env.num_distractors': _NON_NEGATIVE, 'env.max_distractors': _NON_NEGATIVE,
-    'env.min_start_distance': _NON_NEGATIVE, 'env.image_size': _AT_LEAST_1,
-    'env.camera.width': _AT_LEAST_1, 'env.camera.height': _AT_LEAST_1,
-    'env.camera.vfov_deg': ('in (0, 180)', lambda v: 0 < v < 180), 'env.camera.max_depth': _POSITIVE,
-    'env.sim.substeps': _AT_LEAST_1, 'env.sim.env_dt': _POSITIVE,
-    'env.placement.slot_grid': _AT_LEAST_1, 'env.placement.cell_size': _POSITIVE,
-    'env.map.cell': _POSITIVE, 'env.map.crop': _AT_LEAST_1,
-    'env.graph.min_pixels': _AT_LEAST_1, 'env.graph.detect_range': _POSITIVE,
+    'ppo.num_envs': _AT_LEAST_1,
+    'ppo.num_steps': _AT_LEAST_1,
+    'ppo.total_timesteps': _AT_LEAST_1,
+    'ppo.update_epochs': _AT_LEAST_1,
+    'ppo.num_minibatches': _AT_LEAST_1,
+    'ppo.lr': _POSITIVE,
+    'ppo.gamma': _UNIT,
+    'ppo.gae_lambda': _UNIT,
+    'ppo.clip_eps': _POSITIVE,
+    'ppo.ent_coef': _NON_NEGATIVE,
+    'ppo.vf_coef': _NON_NEGATIVE,
+    'ppo.max_grad_norm': _POSITIVE,
+    'env.max_steps': _AT_LEAST_1,
+    'env.success_distance': _POSITIVE,
+    'env.num_distractors': _NON_NEGATIVE,
+    'env.max_distractors': _NON_NEGATIVE,
+    'env.min_start_distance': _NON_NEGATIVE,
+    'env.image_size': _AT_LEAST_1,
+    'env.camera.width': _AT_LEAST_1,
+    'env.camera.height': _AT_LEAST_1,
+    'env.camera.vfov_deg': ('in (0, 180)', lambda v: 0 < v < 180),
+    'env.camera.max_depth': _POSITIVE,
+    'env.sim.substeps': _AT_LEAST_1,
+    'env.sim.env_dt': _POSITIVE,
+    'env.placement.slot_grid': _AT_LEAST_1,
+    'env.placement.cell_size': _POSITIVE,
+    'env.map.cell': _POSITIVE,
+    'env.map.crop': _AT_LEAST_1,
+    'env.graph.min_pixels': _AT_LEAST_1,
+    'env.graph.detect_range': _POSITIVE,
 }
 
 # Fields that follow from other choices: where each is chosen instead.
-DERIVED = {'env.task': '--task', 'env.metric_map': '--model rgbd_mm',
-           'env.image_obs': '--model-option use_rgbd=...', 'env.auto_reset': 'nothing (training needs it)'}
-DERIVED.update({f'network.{k}': '--model (it is fixed by the variant)'
-                for v in VARIANTS.values() for k in v})
+DERIVED = {
+    'env.task': '--task',
+    'env.metric_map': '--model rgbd_mm',
+    'env.image_obs': '--model-option use_rgbd=...',
+    'env.auto_reset': 'nothing (training needs it)',
+}
+DERIVED.update({f'network.{k}': '--model (it is fixed by the variant)' for v in VARIANTS.values() for k in v})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,17 +153,17 @@ class TrainConfig:
     """Everything that defines a run (hashable). Build it with `make_config`, not directly."""
 
     task: str
-    model: str                        # variant name, models.VARIANTS
-    env: Any                          # NavConfig | ChoiceConfig
+    model: str  # variant name, models.VARIANTS
+    env: Any  # NavConfig | ChoiceConfig
     network: ModelConfig
     ppo: PPOConfig
-    scene: str | None = None          # repo-relative when inside the repo; None: choice
-    seed: int = 0                     # seed i of the run uses PRNGKey(seed + i)
+    scene: str | None = None  # repo-relative when inside the repo; None: choice
+    seed: int = 0  # seed i of the run uses PRNGKey(seed + i)
     num_seeds: int = 1
-    log_every: int = 1                # updates per jitted chunk
-    checkpoint_every: int = 20        # updates
+    log_every: int = 1  # updates per jitted chunk
+    checkpoint_every: int = 20  # updates
     keep_checkpoints: int = 3
-    fast_compile: bool = False        # FAST_COMPILE XLA options (tests, debugging)
+    fast_compile: bool = False  # FAST_COMPILE XLA options (tests, debugging)
 
     @property
     def scene_path(self) -> str | None:
@@ -135,7 +186,7 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> 'TrainConfig':
+    def from_dict(cls, d: dict) -> TrainConfig:
         """The config of a config.json (checked like a new one); older flat files are upgraded."""
         d = _upgrade(dict(d))
         if 'task' not in d or 'model' not in d:
@@ -144,8 +195,9 @@ class TrainConfig:
         return make_config(d['task'], d['model'], _flatten(rest))
 
 
-def make_config(task: str = DEFAULT_TASK, model: str = DEFAULT_MODEL,
-                overrides: dict[str, Any] | None = None) -> TrainConfig:
+def make_config(
+    task: str = DEFAULT_TASK, model: str = DEFAULT_MODEL, overrides: dict[str, Any] | None = None
+) -> TrainConfig:
     """The task's defaults with `overrides` ({dotted field: value}) applied; see the module docstring."""
     if task not in TASKS:
         raise ConfigError('task', f'unknown task {task!r}; valid: {", ".join(TASKS)}')
@@ -160,7 +212,7 @@ def make_config(task: str = DEFAULT_TASK, model: str = DEFAULT_MODEL,
         if VARIANTS[model].get('use_map'):
             raise ConfigError('model', f'the choice task has no metric map: use another model than {model}')
     size = overrides.pop('env.image_size', None) if task != 'choice' else None
-    if size is not None:   # a square camera (ChoiceConfig has a field of that name)
+    if size is not None:  # a square camera (ChoiceConfig has a field of that name)
         overrides.setdefault('env.camera.width', size)
         overrides.setdefault('env.camera.height', size)
 
@@ -175,8 +227,7 @@ def make_config(task: str = DEFAULT_TASK, model: str = DEFAULT_MODEL,
     if task == 'choice':
         derived['env.image_obs'] = flat['network.use_rgbd']
     else:
-        derived.update({'env.task': task, 'env.metric_map': flat['network.use_map'],
-                        'env.auto_reset': True})
+        derived.update({'env.task': task, 'env.metric_map': flat['network.use_map'], 'env.auto_reset': True})
     for field, value in derived.items():
         if field in overrides and overrides[field] != value:
             raise ConfigError(field, f'is set by {DERIVED[field]}, not directly')
@@ -200,9 +251,16 @@ def _defaults(task: str, model: str) -> TrainConfig:
         # The choice task is symbolic (the paper's SG models see only the graph); images are
         # rendered only for a model that asks for them with use_rgbd=True.
         network = dataclasses.replace(network, use_rgbd=False)
-    return TrainConfig(task=task, model=model, env=env_config(task), network=network, ppo=d['ppo'],
-                       scene=DEFAULT_SCENES.get(task), log_every=d['log_every'],
-                       checkpoint_every=d['checkpoint_every'])
+    return TrainConfig(
+        task=task,
+        model=model,
+        env=env_config(task),
+        network=network,
+        ppo=d['ppo'],
+        scene=DEFAULT_SCENES.get(task),
+        log_every=d['log_every'],
+        checkpoint_every=d['checkpoint_every'],
+    )
 
 
 def _flatten(d: dict, prefix: str = '') -> dict:
@@ -217,15 +275,18 @@ def _flatten(d: dict, prefix: str = '') -> dict:
 
 def _siblings(flat: dict, field: str) -> str:
     prefix = field.rsplit('.', 1)[0] + '.' if '.' in field else ''
-    names = sorted({k[len(prefix):].split('.')[0] for k in flat
-                    if k.startswith(prefix) and k not in DERIVED})
+    names = sorted(
+        {k[len(prefix) :].split('.')[0] for k in flat if k.startswith(prefix) and k not in DERIVED}
+    )
     return ', '.join(names)
 
 
 def _coerce(field: str, value, template):
     """`value` in the type of the field's current value `template` (strings are parsed)."""
+
     def bad():
         return ConfigError(field, f'expected {type(template).__name__}, got {value!r}')
+
     if value is None and (template is None or isinstance(template, str)):
         return None
     if isinstance(template, bool):
@@ -283,8 +344,7 @@ def _build(template, flat: dict, prefix: str):
     for f in dataclasses.fields(template):
         cur = getattr(template, f.name)
         path = prefix + f.name
-        kw[f.name] = (_build(cur, flat, path + '.') if dataclasses.is_dataclass(cur)
-                      else flat[path])
+        kw[f.name] = _build(cur, flat, path + '.') if dataclasses.is_dataclass(cur) else flat[path]
     try:
         return type(template)(**kw)
     except ConfigError as e:
@@ -297,8 +357,11 @@ def _upgrade(d: dict) -> dict:
     """A config.json written before the typed tree (flat env_options / model_options) as a tree."""
     if 'env_options' not in d and 'model_options' not in d:
         return d
-    out = {k: v for k, v in d.items() if k not in ('env_options', 'model_options', 'distractors',
-                                                   'premap', 'ppo')}
+    out = {
+        k: v
+        for k, v in d.items()
+        if k not in ('env_options', 'model_options', 'distractors', 'premap', 'ppo')
+    }
     out.update({f'env.{k}': v for k, v in d.get('env_options', ())})
     out.update({f'network.{k}': v for k, v in d.get('model_options', ())})
     out['env.distractors'] = d.get('distractors', False)
@@ -322,10 +385,12 @@ def config_diff(a: TrainConfig, b: TrainConfig) -> dict[str, tuple]:
 # What a config builds and how it is named
 # ------------------------------------------------------------------------------------------------
 
+
 def build_env(config: TrainConfig, episodic: bool = False, **overrides):
     """The run's env with some env config fields overridden. episodic: episodes end instead of
     resetting inside `step` (evaluation and analysis roll out whole episodes)."""
     from hron_jax.envs import make_env
+
     if episodic and config.task != 'choice':
         overrides = dict(overrides, auto_reset=False)
     return make_env(config.task, config.scene_path, config.env, **overrides)
@@ -333,6 +398,7 @@ def build_env(config: TrainConfig, episodic: bool = False, **overrides):
 
 def build_network(config: TrainConfig, num_actions: int):
     from hron_jax.models import make_model
+
     return make_model(config.model, num_actions, config.network)
 
 

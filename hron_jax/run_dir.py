@@ -15,6 +15,7 @@ empty arrays. A checkpoint whose arrays do not match the config (another model s
 version) is a CheckpointError; a damaged newest checkpoint is moved aside and the newest intact
 one is restored instead (resuming recomputes the updates after it exactly), and the caller is told.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -23,8 +24,8 @@ import os
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -59,8 +60,13 @@ def load_config(run_dir) -> TrainConfig:
 
 def save_config(run_dir, config: TrainConfig) -> None:
     import jax
-    meta = dict(jax=jax.__version__, devices=[str(d) for d in jax.local_devices()],
-                argv=sys.argv, time=time.strftime('%Y-%m-%d %H:%M:%S'))
+
+    meta = dict(
+        jax=jax.__version__,
+        devices=[str(d) for d in jax.local_devices()],
+        argv=sys.argv,
+        time=time.strftime('%Y-%m-%d %H:%M:%S'),
+    )
     write_json(Path(run_dir) / 'config.json', dict(config=config.to_dict(), meta=meta))
 
 
@@ -72,7 +78,7 @@ def read_metrics(run_dir) -> list[dict]:
             for line in f:
                 try:
                     rows.append(json.loads(line))
-                except json.JSONDecodeError:   # a line cut by a hard kill
+                except json.JSONDecodeError:  # a line cut by a hard kill
                     pass
     return rows
 
@@ -81,11 +87,15 @@ def read_metrics(run_dir) -> list[dict]:
 # Checkpoints
 # ------------------------------------------------------------------------------------------------
 
+
 def checkpoint_manager(run_dir, keep: int = 3, create: bool = True):
     import orbax.checkpoint as ocp
+
     return ocp.CheckpointManager(
-        (Path(run_dir) / 'checkpoints').resolve(), item_handlers=ocp.StandardCheckpointHandler(),
-        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=create))
+        (Path(run_dir) / 'checkpoints').resolve(),
+        item_handlers=ocp.StandardCheckpointHandler(),
+        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=create),
+    )
 
 
 def _is_empty(x) -> bool:
@@ -96,6 +106,7 @@ def storable(tree):
     """The tree as saved: zero-size leaves replaced by a 1-element placeholder."""
     import jax
     import jax.numpy as jnp
+
     return jax.tree.map(lambda x: jnp.zeros((1,), x.dtype) if _is_empty(x) else x, tree)
 
 
@@ -110,15 +121,17 @@ def _storable_abstract(abstract):
         if isinstance(sharding, NamedSharding):
             sharding = NamedSharding(sharding.mesh, PartitionSpec())
         return jax.ShapeDtypeStruct((1,), a.dtype, sharding=sharding)
+
     return jax.tree.map(f, abstract)
 
 
 def _from_storable(abstract, restored):
     import jax
     import jax.numpy as jnp
+
     return jax.tree.map(
-        lambda a, r: jnp.zeros(a.shape, a.dtype, device=a.sharding) if _is_empty(a) else r,
-        abstract, restored)
+        lambda a, r: jnp.zeros(a.shape, a.dtype, device=a.sharding) if _is_empty(a) else r, abstract, restored
+    )
 
 
 def _leaf_name(path) -> str:
@@ -140,13 +153,15 @@ def _check_metadata(manager, step: int, abstract, path: Path, partial: bool = Fa
     """Compare the stored arrays (names, shapes, dtypes) with what this config builds (with
     `partial`, only those in `abstract`, e.g. {'params': ...})."""
     import jax
+
     try:
         stored = {m.name: m for m in jax.tree.leaves(manager.item_metadata(step))}
         if not stored:
             raise ValueError('no arrays listed')
     except Exception as e:
-        raise _Damaged(f'{path}: unreadable checkpoint metadata ({type(e).__name__}: '
-                       f'{str(e)[:200]})') from None
+        raise _Damaged(
+            f'{path}: unreadable checkpoint metadata ({type(e).__name__}: {str(e)[:200]})'
+        ) from None
     want = {_leaf_name(p): a for p, a in jax.tree_util.tree_flatten_with_path(abstract)[0]}
     if partial:
         roots = {n.split('.')[0] for n in want}
@@ -160,26 +175,28 @@ def _check_metadata(manager, step: int, abstract, path: Path, partial: bool = Fa
         else:
             a, b = want[name], stored[name]
             if tuple(a.shape) != tuple(b.shape) or np.dtype(a.dtype) != np.dtype(b.dtype):
-                problems.append(f'{name} stored {tuple(b.shape)} {b.dtype}, expected '
-                                f'{tuple(a.shape)} {a.dtype}')
+                problems.append(
+                    f'{name} stored {tuple(b.shape)} {b.dtype}, expected {tuple(a.shape)} {a.dtype}'
+                )
     if problems:
         more = f' (+{len(problems) - 3} more)' if len(problems) > 3 else ''
         raise CheckpointError(
             f'{path}: checkpoint does not match this run\'s config: {"; ".join(problems[:3])}{more}. '
             'It was written by a different config or code version: restore config.json / the code, '
-            'or start a new run with another --out')
+            'or start a new run with another --out'
+        )
 
 
 def _steps(run_dir: Path):
     """(manager, sorted checkpoint steps); CheckpointError if there are none."""
-    manager = (checkpoint_manager(run_dir, create=False)
-               if (run_dir / 'checkpoints').is_dir() else None)
+    manager = checkpoint_manager(run_dir, create=False) if (run_dir / 'checkpoints').is_dir() else None
     steps = sorted(manager.all_steps()) if manager is not None else []
     if not steps:
         if manager is not None:
             manager.close()
-        raise CheckpointError(f'{run_dir / "checkpoints"}: no checkpoint found; start a new run '
-                              '(train.py without --resume)')
+        raise CheckpointError(
+            f'{run_dir / "checkpoints"}: no checkpoint found; start a new run (train.py without --resume)'
+        )
     return manager, steps
 
 
@@ -191,8 +208,9 @@ def _restoring(path: Path):
     except CheckpointError:
         raise
     except Exception as e:
-        raise _Damaged(f'{path}: cannot restore the checkpoint ({type(e).__name__}: '
-                       f'{str(e)[:300]})') from None
+        raise _Damaged(
+            f'{path}: cannot restore the checkpoint ({type(e).__name__}: {str(e)[:300]})'
+        ) from None
 
 
 def _set_aside(run_dir: Path, step: int) -> Path:
@@ -210,6 +228,7 @@ def restore_runner(run_dir, abstract, log: Callable[[str], None] = print):
     checkpoint: damaged newer ones are moved to RUN_DIR/corrupt_checkpoints/ and reported with
     `log`. Raises CheckpointError when none is intact or they do not fit the config."""
     import orbax.checkpoint as ocp
+
     run_dir = Path(run_dir).resolve()
     stored = _storable_abstract(abstract)
     while True:
@@ -226,8 +245,9 @@ def restore_runner(run_dir, abstract, log: Callable[[str], None] = print):
         finally:
             manager.close()
         if len(steps) == 1:
-            raise CheckpointError(f'{damaged}; no older checkpoint to fall back to: start a new '
-                                  'run with another --out')
+            raise CheckpointError(
+                f'{damaged}; no older checkpoint to fall back to: start a new run with another --out'
+            )
         dest = _set_aside(run_dir, step)
         log(f'{damaged}: moved it to {dest}; falling back to checkpoint {steps[-2]}')
 
@@ -238,26 +258,37 @@ def restore_params(run_dir, config: TrainConfig, env, network, step: int | None 
     training (e.g. no auto-reset)."""
     import jax
     import orbax.checkpoint as ocp
-    run_dir = Path(run_dir).resolve()     # orbax restores from absolute paths only
+
+    run_dir = Path(run_dir).resolve()  # orbax restores from absolute paths only
     manager, steps = _steps(run_dir)
     step = steps[-1] if step is None else step
     path = run_dir / 'checkpoints' / str(step)
     try:
         if step not in steps:
-            raise CheckpointError(f'{run_dir / "checkpoints"}: no checkpoint for step {step}; '
-                                  f'available: {steps}')
+            raise CheckpointError(
+                f'{run_dir / "checkpoints"}: no checkpoint for step {step}; available: {steps}'
+            )
         obs = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs
         one = jax.eval_shape(network.init, jax.random.PRNGKey(0), obs)
-        item = {'params': jax.tree.map(
-            lambda a: jax.ShapeDtypeStruct((config.num_seeds,) + a.shape, a.dtype), one)}
+        item = {
+            'params': jax.tree.map(
+                lambda a: jax.ShapeDtypeStruct((config.num_seeds,) + a.shape, a.dtype), one
+            )
+        }
         with _restoring(path):
             _check_metadata(manager, step, item, path, partial=True)
-            out = ocp.PyTreeCheckpointer().restore(path / 'default', args=ocp.args.PyTreeRestore(
-                item=item, restore_args=ocp.checkpoint_utils.construct_restore_args(item),
-                partial_restore=True))
+            out = ocp.PyTreeCheckpointer().restore(
+                path / 'default',
+                args=ocp.args.PyTreeRestore(
+                    item=item,
+                    restore_args=ocp.checkpoint_utils.construct_restore_args(item),
+                    partial_restore=True,
+                ),
+            )
     except _Damaged as e:
-        raise CheckpointError(f'{e}; evaluate an older checkpoint (RUN_DIR/checkpoints/<update>, '
-                              f'available: {steps})') from None
+        raise CheckpointError(
+            f'{e}; evaluate an older checkpoint (RUN_DIR/checkpoints/<update>, available: {steps})'
+        ) from None
     finally:
         manager.close()
     return out['params'], step

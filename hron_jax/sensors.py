@@ -66,7 +66,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -87,16 +87,16 @@ class CameraConfig:
 
     width: int = 32
     height: int = 32
-    vfov_deg: float = 120.0      # the paper's camera (128 x 128, 120 deg vertical FoV); square pixels
-    max_depth: float = 10.0      # m; farther hits read as misses
-    mount_height: float = 1.0    # camera origin above the floor (m)
+    vfov_deg: float = 120.0  # the paper's camera (128 x 128, 120 deg vertical FoV); square pixels
+    max_depth: float = 10.0  # m; farther hits read as misses
+    mount_height: float = 1.0  # camera origin above the floor (m)
     forward_offset: float = 0.0  # camera origin ahead of the agent's axis (m)
-    pitch_deg: float = 0.0       # + looks up
-    backend: str = "kernel"      # "kernel" | "mjx"
-    k_box: int = 32              # per-column candidates kept per geom type (see module docstring)
+    pitch_deg: float = 0.0  # + looks up
+    backend: str = "kernel"  # "kernel" | "mjx"
+    k_box: int = 32  # per-column candidates kept per geom type (see module docstring)
     k_sphere: int = 8
     k_capsule: int = 8
-    ambient: float = 0.35        # Lambert shading: ambient + (1 - ambient) * max(0, n . l)
+    ambient: float = 0.35  # Lambert shading: ambient + (1 - ambient) * max(0, n . l)
     light_dir: tuple = (0.3, 0.2, 1.0)  # world direction towards a distant light (plus a headlight)
 
     @property
@@ -135,8 +135,9 @@ def camera_frame(pose: jax.Array, cfg: CameraConfig):
     f = jnp.stack([cy * math.cos(p), sy * math.cos(p), jnp.full_like(cy, math.sin(p))])
     r = jnp.stack([sy, -cy, jnp.zeros_like(cy)])
     u = jnp.stack([-cy * math.sin(p), -sy * math.sin(p), jnp.full_like(cy, math.cos(p))])
-    o = jnp.stack([x + cfg.forward_offset * cy, y + cfg.forward_offset * sy,
-                   jnp.full_like(cy, cfg.mount_height)])
+    o = jnp.stack(
+        [x + cfg.forward_offset * cy, y + cfg.forward_offset * sy, jnp.full_like(cy, cfg.mount_height)]
+    )
     return o, jnp.stack([r, u, f], axis=1)
 
 
@@ -159,6 +160,7 @@ def world_rays(pose: jax.Array, cfg: CameraConfig):
 # (structure of arrays: px, py, pz, dx, dy, dz, each broadcastable): XLA's CPU backend vectorises
 # long elementwise arrays well and trailing axes of size 3 badly (measured: ~4x). Each returns the
 # smallest t >= 0 with p + t d on the surface, +inf if none; d need not be unit length.
+
 
 def _safe_inv(d):
     return 1.0 / jnp.where(jnp.abs(d) < _EPS, jnp.where(d >= 0, _EPS, -_EPS), d)
@@ -194,8 +196,9 @@ def _first_nonneg(t0, t1):
 
 
 def ray_sphere_soa(r, px, py, pz, dx, dy, dz):
-    t0, t1 = _quad_roots(dx * dx + dy * dy + dz * dz, dx * px + dy * py + dz * pz,
-                         px * px + py * py + pz * pz - r * r)
+    t0, t1 = _quad_roots(
+        dx * dx + dy * dy + dz * dz, dx * px + dy * py + dz * pz, px * px + py * py + pz * pz - r * r
+    )
     return _first_nonneg(t0, t1)
 
 
@@ -205,7 +208,7 @@ def ray_capsule_soa(r, h, px, py, pz, dx, dy, dz):
     t = _first_nonneg(t0, t1)
     t = jnp.where(jnp.abs(pz + t * dz) <= h, t, jnp.inf)
     dd = dx * dx + dy * dy + dz * dz
-    for sgn in (1.0, -1.0):   # each cap's roots count only on its own hemisphere
+    for sgn in (1.0, -1.0):  # each cap's roots count only on its own hemisphere
         qz = pz - sgn * h
         c0, c1 = _quad_roots(dd, dx * px + dy * py + dz * qz, px * px + py * py + qz * qz - r * r)
         for c in (c0, c1):
@@ -244,12 +247,19 @@ def _local_normal(gtype, size, q):
 
 # ---------------------------------------------------------------------------------------------
 
+
 class Camera:
     """Static camera tables for one model; `render` is pure and jittable (vmap for batches)."""
 
-    def __init__(self, mj_model: mujoco.MjModel, config: CameraConfig = CameraConfig(),
-                 geom_instance: Optional[np.ndarray] = None, geom_class: Optional[np.ndarray] = None,
-                 exclude_body: int = -1, mjx_model: Optional[mjx.Model] = None):
+    def __init__(
+        self,
+        mj_model: mujoco.MjModel,
+        config: CameraConfig = CameraConfig(),
+        geom_instance: np.ndarray | None = None,
+        geom_class: np.ndarray | None = None,
+        exclude_body: int = -1,
+        mjx_model: mjx.Model | None = None,
+    ):
         m = mj_model
         cfg = config
         if cfg.backend not in ("kernel", "mjx"):
@@ -259,10 +269,11 @@ class Camera:
         self.exclude_body = int(exclude_body)
         ng = m.ngeom
         self.geom_instance = jnp.asarray(
-            np.full(ng, -1, np.int32) if geom_instance is None else np.asarray(geom_instance, np.int32))
+            np.full(ng, -1, np.int32) if geom_instance is None else np.asarray(geom_instance, np.int32)
+        )
         self.geom_class = jnp.asarray(
-            np.ones(ng, np.int32) if geom_class is None
-            else np.asarray(geom_class, np.int32))
+            np.ones(ng, np.int32) if geom_class is None else np.asarray(geom_class, np.int32)
+        )
         if self.geom_instance.shape != (ng,) or self.geom_class.shape != (ng,):
             raise ValueError(f"geom tables must have shape ({ng},); use Simulator.geom_tables")
         rgba = effective_rgba(m)
@@ -282,8 +293,8 @@ class Camera:
         if len(other) and cfg.backend == "kernel":
             raise ValueError(f"kernel backend supports box/sphere/capsule only; geoms {other} are not")
         self._dirs_cam = pixel_directions(cfg)
-        self._col_x = self._dirs_cam[0, :, 0]          # (W,) X slope of each column
-        self._row_y = self._dirs_cam[:, 0, 1]          # (H,) Y slope of each row
+        self._col_x = self._dirs_cam[0, :, 0]  # (W,) X slope of each column
+        self._row_y = self._dirs_cam[:, 0, 1]  # (H,) Y slope of each row
         self._row_y_max = float(np.abs(self._row_y).max())
         if cfg.backend == "mjx":
             self.mjx_model = mjx_model if mjx_model is not None else mjx.put_model(m)
@@ -291,13 +302,20 @@ class Camera:
         self._light = jnp.asarray(light / np.linalg.norm(light), jnp.float32)
 
     @classmethod
-    def for_simulator(cls, sim, config: CameraConfig = CameraConfig(), scene=None,
-                      geom_instance=None, geom_class=None) -> "Camera":
+    def for_simulator(
+        cls, sim, config: CameraConfig = CameraConfig(), scene=None, geom_instance=None, geom_class=None
+    ) -> Camera:
         """Camera for a `hron_jax.sim.Simulator`; tables from `scene` (a Scene) or given explicitly."""
         if scene is not None:
             geom_instance, geom_class = sim.geom_tables(scene.geom_instance, scene.geom_class)
-        return cls(sim.mj_model, config, geom_instance, geom_class, exclude_body=sim.agent_body,
-                   mjx_model=sim.mjx_model if config.backend == "mjx" else None)
+        return cls(
+            sim.mj_model,
+            config,
+            geom_instance,
+            geom_class,
+            exclude_body=sim.agent_body,
+            mjx_model=sim.mjx_model if config.backend == "mjx" else None,
+        )
 
     # ------------------------------------------------------------------ public API
     def render(self, data: mjx.Data, pose: jax.Array) -> CameraOutput:
@@ -315,37 +333,37 @@ class Camera:
         # every geom in camera coordinates: centre c (G, 3) and axes r[g, a, i] = camera comp a of axis i
         c_cam = (xpos - o) @ rot
         r_cam = jnp.einsum("ja,gji->gai", rot, xmat)
-        X = jnp.asarray(self._col_x)[:, None, None]             # (W, 1, 1) column slope
-        Y = jnp.asarray(self._row_y)[None, :, None]             # (1, H, 1) row slope
+        X = jnp.asarray(self._col_x)[:, None, None]  # (W, 1, 1) column slope
+        Y = jnp.asarray(self._row_y)[None, :, None]  # (1, H, 1) row slope
 
         best_t = jnp.full((cfg.width, cfg.height), jnp.inf, jnp.float32)
         best_g = jnp.full((cfg.width, cfg.height), -1, jnp.int32)
-        bound = jnp.full((cfg.width,), jnp.inf, jnp.float32)   # min E over overflowing types
+        bound = jnp.full((cfg.width,), jnp.inf, jnp.float32)  # min E over overflowing types
         kmax = {_BOX: cfg.k_box, _SPHERE: cfg.k_sphere, _CAPSULE: cfg.k_capsule}
         for t, ids in self.type_ids.items():
             ids_j = jnp.asarray(ids)
             k = min(kmax[t], len(ids))
             size = self.geom_size[ids_j]
             cc, rc = c_cam[ids_j], r_cam[ids_j]
-            p_loc = -jnp.einsum("gai,ga->gi", rc, cc)           # ray origin in the geom frame
+            p_loc = -jnp.einsum("gai,ga->gi", rc, cc)  # ray origin in the geom frame
             table = jnp.concatenate([rc.reshape(-1, 9), p_loc, size], -1)  # (Gt, 15)
             if k < len(ids):
                 score = self._column_scores(cc, rc, _bounding_box_size(t, size))  # (W, Gt)
                 # materialise once: left to fusion, XLA recomputes the scores in every consumer
                 score = jax.lax.optimization_barrier(score)
-                neg, cand = jax.lax.top_k(-score, k)            # (W, k) nearest-entry candidates
+                neg, cand = jax.lax.top_k(-score, k)  # (W, k) nearest-entry candidates
                 overflow = jnp.sum(jnp.isfinite(score), -1) > k
                 # E = largest kept t_enter. A max over all k values, not neg[:, -1]: XLA:CPU maps
                 # top_k to its fast TopK call only when the whole [0:k] slice is used, else it
                 # sorts all G per column (measured 10x slower).
                 kept_max = jnp.max(-neg, axis=-1)
                 bound = jnp.where(overflow, jnp.minimum(bound, kept_max), bound)
-                valid = jnp.isfinite(neg)                       # (W, k) real candidates
+                valid = jnp.isfinite(neg)  # (W, k) real candidates
                 tab = jnp.where(valid[..., None], table[cand], 0.0)  # one gather, (W, k, 15)
                 cand_g = ids_j[cand]
             else:  # few geoms of this type: test them all in every column, no culling needed
                 valid = jnp.ones((1, len(ids)), bool)
-                tab = table[None]                               # (1, Gt, 15)
+                tab = table[None]  # (1, Gt, 15)
                 cand_g = jnp.broadcast_to(ids_j[None], (cfg.width, len(ids)))
             comp = [tab[None, :, :, i].swapaxes(0, 1) for i in range(15)]  # each (W, 1, k)
             # direction in the geom frame: d_i = r[0,i] X + r[1,i] Y + r[2,i] (camera dir (X, Y, 1))
@@ -358,9 +376,9 @@ class Camera:
                 tt = ray_sphere_soa(s[0], *p, *d)
             else:
                 tt = ray_capsule_soa(s[0], s[1], *p, *d)
-            tt = jnp.where(valid[:, None, :], tt, jnp.inf)       # (W, H, k)
+            tt = jnp.where(valid[:, None, :], tt, jnp.inf)  # (W, H, k)
             tt = jnp.broadcast_to(tt, (cfg.width, cfg.height, tt.shape[-1]))
-            t_min, j = _min_argmin(tt)                           # (W, H)
+            t_min, j = _min_argmin(tt)  # (W, H)
             g_min = jnp.take_along_axis(cand_g, j, axis=1)
             better = t_min < best_t
             best_t = jnp.where(better, t_min, best_t)
@@ -379,10 +397,10 @@ class Camera:
         normals perpendicular to each v_i; the column is the 2D ray t (x_j tan_h, 1).
         """
         cfg = self.config
-        X = jnp.asarray(self._col_x)[:, None]                   # (W, 1)
-        vx = [r_cam[:, 0, i] * bsize[:, i] for i in range(3)]   # each (G,)
+        X = jnp.asarray(self._col_x)[:, None]  # (W, 1)
+        vx = [r_cam[:, 0, i] * bsize[:, i] for i in range(3)]  # each (G,)
         vz = [r_cam[:, 2, i] * bsize[:, i] for i in range(3)]
-        t_lo = jnp.zeros((), jnp.float32)                        # rays start at the camera
+        t_lo = jnp.zeros((), jnp.float32)  # rays start at the camera
         t_hi = jnp.full((), cfg.max_depth, jnp.float32)
         for i in range(3):
             ln = jnp.sqrt(vx[i] ** 2 + vz[i] ** 2)
@@ -391,8 +409,8 @@ class Camera:
             nx = jnp.where(ok, -vz[i] / jnp.where(ok, ln, 1.0), 1.0)
             nz = jnp.where(ok, vx[i] / jnp.where(ok, ln, 1.0), 0.0)
             width = sum(jnp.abs(nx * vx[j] + nz * vz[j]) for j in range(3))
-            p = -(nx * c_cam[:, 0] + nz * c_cam[:, 2])           # ray origin (0, 0) along n
-            inv = _safe_inv(nx[None] * X + nz[None])             # (W, G)
+            p = -(nx * c_cam[:, 0] + nz * c_cam[:, 2])  # ray origin (0, 0) along n
+            inv = _safe_inv(nx[None] * X + nz[None])  # (W, G)
             ta = (-width - p)[None] * inv
             tb = (width - p)[None] * inv
             t_lo = jnp.maximum(t_lo, jnp.minimum(ta, tb))
@@ -412,9 +430,9 @@ class Camera:
         gs = jnp.maximum(g, 0)
         depth = jnp.where(hit, t, cfg.max_depth).astype(jnp.float32)
         # shading: normal at the hit point, computed in the hit geom's frame
-        dirs_w = jnp.asarray(self._dirs_cam) @ rot.T             # (H, W, 3) world directions
+        dirs_w = jnp.asarray(self._dirs_cam) @ rot.T  # (H, W, 3) world directions
         pw = o + jnp.where(hit, t, 0.0)[..., None] * dirs_w
-        table = jnp.concatenate([xpos, xmat.reshape(-1, 9)], -1)[gs]   # (H, W, 12)
+        table = jnp.concatenate([xpos, xmat.reshape(-1, 9)], -1)[gs]  # (H, W, 12)
         rg = table[..., 3:].reshape(*gs.shape, 3, 3)
         q = jnp.einsum("hwji,hwj->hwi", rg, pw - table[..., :3])
         n_loc = _local_normal(self.geom_type[gs], self.geom_size[gs], q)
@@ -442,8 +460,7 @@ class Camera:
         g = gid.reshape(cfg.height, cfg.width).astype(jnp.int32)
         xmat = data.geom_xmat.reshape(-1, 3, 3).astype(jnp.float32)
         _, rot = camera_frame(pose, cfg)
-        return self._finish(t, g, o, rot, data.geom_xpos.astype(jnp.float32), xmat,
-                            jnp.zeros((), jnp.int32))
+        return self._finish(t, g, o, rot, data.geom_xpos.astype(jnp.float32), xmat, jnp.zeros((), jnp.int32))
 
 
 def _min_argmin(x: jax.Array):
@@ -458,8 +475,9 @@ def _min_argmin(x: jax.Array):
         take_b = (vb < va) | ((vb == va) & (ib < ia))
         return jnp.where(take_b, vb, va), jnp.where(take_b, ib, ia)
 
-    return jax.lax.reduce((x, idx), (jnp.array(jnp.inf, x.dtype), jnp.array(0, jnp.int32)), pick,
-                          (x.ndim - 1,))
+    return jax.lax.reduce(
+        (x, idx), (jnp.array(jnp.inf, x.dtype), jnp.array(0, jnp.int32)), pick, (x.ndim - 1,)
+    )
 
 
 def _bounding_box_size(gtype: int, size: jax.Array) -> jax.Array:

@@ -69,7 +69,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -90,21 +89,21 @@ AGENT_JOINTS = ("agent:x", "agent:y", "agent:yaw")
 class SimConfig:
     """Static simulator settings (hashable; changing one recompiles)."""
 
-    radius: float = 0.2             # capsule radius (m)
-    height: float = 1.2             # capsule top above the floor (m)
+    radius: float = 0.2  # capsule radius (m)
+    height: float = 1.2  # capsule top above the floor (m)
     bottom_clearance: float = 0.05  # capsule bottom above the floor (m): thresholds / seams don't block
-    mass: float = 20.0              # kg; the yaw inertia is that of a solid cylinder, m r^2 / 2
-    env_dt: float = 0.1             # simulated seconds per env step (paper: 500 steps = 50 s)
-    substeps: int = 10              # MJX steps per env step (timestep = env_dt / substeps)
-    forward_m: float = 0.2          # FORWARD / BACKWARD displacement (m)
-    turn_deg: float = 30.0          # TURN_LEFT / TURN_RIGHT rotation (deg)
-    ramp_substeps: int = 3          # trapezoid velocity plan: substeps to reach cruise speed
-    servo_gain: float = 0.5         # a = dt kv / m of the implicit velocity servos (see docstring)
-    contact_skin: float = 0.02      # collision capsule = radius + skin: contacts start this far out
-    contact_solref: tuple = (0.02, 1.0)                    # timeconst >= 2 dt (MuJoCo's refsafe)
+    mass: float = 20.0  # kg; the yaw inertia is that of a solid cylinder, m r^2 / 2
+    env_dt: float = 0.1  # simulated seconds per env step (paper: 500 steps = 50 s)
+    substeps: int = 10  # MJX steps per env step (timestep = env_dt / substeps)
+    forward_m: float = 0.2  # FORWARD / BACKWARD displacement (m)
+    turn_deg: float = 30.0  # TURN_LEFT / TURN_RIGHT rotation (deg)
+    ramp_substeps: int = 3  # trapezoid velocity plan: substeps to reach cruise speed
+    servo_gain: float = 0.5  # a = dt kv / m of the implicit velocity servos (see docstring)
+    contact_skin: float = 0.02  # collision capsule = radius + skin: contacts start this far out
+    contact_solref: tuple = (0.02, 1.0)  # timeconst >= 2 dt (MuJoCo's refsafe)
     contact_solimp: tuple = (0.95, 0.99, 0.001, 0.5, 2.0)  # stiff: little give under the servo push
-    max_geom_pairs: Optional[int] = None  # None: smallest K that never drops a live contact
-    solver_iterations: int = 4      # Newton iterations (few frictionless contacts on 3 dofs)
+    max_geom_pairs: int | None = None  # None: smallest K that never drops a live contact
+    solver_iterations: int = 4  # Newton iterations (few frictionless contacts on 3 dofs)
     ls_iterations: int = 8
     agent_rgba: tuple = (0.2, 0.4, 0.9, 1.0)
 
@@ -147,13 +146,16 @@ def _add_agent(spec: mujoco.MjSpec, cfg: SimConfig) -> None:
     # The collision capsule is the body (radius) plus a skin: MJX's capsule-box collider reports only
     # penetrating contacts (dist = 1 otherwise, so geom margins are ignored; measured), hence the
     # early-contact zone is built into the radius. For capsule-box this equals a native margin.
-    geom = body.add_geom(name=AGENT_GEOM, type=mujoco.mjtGeom.mjGEOM_CAPSULE,
-                         size=[cfg.radius + cfg.contact_skin, 0.0, 0.0],
-                         fromto=[0.0, 0.0, z0, 0.0, 0.0, z1])
+    geom = body.add_geom(
+        name=AGENT_GEOM,
+        type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+        size=[cfg.radius + cfg.contact_skin, 0.0, 0.0],
+        fromto=[0.0, 0.0, z0, 0.0, 0.0, z1],
+    )
     geom.rgba = list(cfg.agent_rgba)
     geom.contype, geom.conaffinity = 1, 0
-    geom.condim = 1                    # frictionless: turning in contact is free, walls are slid along
-    geom.priority = 10                 # the agent's contact parameters win over the scene's
+    geom.condim = 1  # frictionless: turning in contact is free, walls are slid along
+    geom.priority = 10  # the agent's contact parameters win over the scene's
     geom.solref = list(cfg.contact_solref)
     geom.solimp = list(cfg.contact_solimp)
     for jname, inertia in zip(AGENT_JOINTS, (cfg.mass, cfg.mass, izz)):
@@ -211,8 +213,11 @@ def _auto_max_geom_pairs(m, d, agent_geom, blockers, cfg: SimConfig, grid: float
     for x in xs:  # one row of the grid at a time keeps memory at len(ys) x len(blockers)
         p = np.stack([np.full_like(ys, x), ys, np.full_like(ys, zc)], -1)  # (Y, 3)
         metric = np.linalg.norm(p[:, None] - cb[None], axis=-1) - rb[None] - rb_agent  # (Y, B)
-        touch = (np.abs(p[:, None, 0] - cb[None, :, 0]) <= hb[None, :, 0] + reach) & \
-                (np.abs(p[:, None, 1] - cb[None, :, 1]) <= hb[None, :, 1] + reach) & z_overlap[None]
+        touch = (
+            (np.abs(p[:, None, 0] - cb[None, :, 0]) <= hb[None, :, 0] + reach)
+            & (np.abs(p[:, None, 1] - cb[None, :, 1]) <= hb[None, :, 1] + reach)
+            & z_overlap[None]
+        )
         if not touch.any():
             continue
         # rank of a touching blocker = number of blockers with metric <= its metric (itself included)
@@ -257,12 +262,12 @@ class Simulator:
         # --- contact filter: agent capsule (contype 1) x blockers (conaffinity 1), nothing else ---
         body_names = [m.body(b).name for b in range(m.nbody)]
         root = m.body_rootid
-        is_floor = np.array([body_names[root[m.geom_bodyid[g]]].startswith("room:")
-                             for g in range(m.ngeom)])
+        is_floor = np.array([body_names[root[m.geom_bodyid[g]]].startswith("room:") for g in range(m.ngeom)])
         is_mocap = m.body_mocapid[root[m.geom_bodyid]] >= 0
         c, h = _geom_world_aabb(m, d)
-        reaches = ((c[:, 2] + h[:, 2] > cfg.bottom_clearance - cfg.contact_skin)
-                   & (c[:, 2] - h[:, 2] < cfg.height + cfg.contact_skin))
+        reaches = (c[:, 2] + h[:, 2] > cfg.bottom_clearance - cfg.contact_skin) & (
+            c[:, 2] - h[:, 2] < cfg.height + cfg.contact_skin
+        )
         is_scene = np.arange(m.ngeom) < self.scene_ngeom
         block = is_scene & ~is_floor & ~is_mocap & reaches
         m.geom_contype[:] = 0
@@ -281,25 +286,32 @@ class Simulator:
         self.mj_model = m
         self.mjx_model = mjx.put_model(m)
         self.nmocap = m.nmocap
-        self.default_mocap_pos = np.array(m.body_pos[m.body_mocapid >= 0][np.argsort(
-            m.body_mocapid[m.body_mocapid >= 0])]) if m.nmocap else np.zeros((0, 3))
-        self.default_mocap_quat = np.array(m.body_quat[m.body_mocapid >= 0][np.argsort(
-            m.body_mocapid[m.body_mocapid >= 0])]) if m.nmocap else np.zeros((0, 4))
+        self.default_mocap_pos = (
+            np.array(m.body_pos[m.body_mocapid >= 0][np.argsort(m.body_mocapid[m.body_mocapid >= 0])])
+            if m.nmocap
+            else np.zeros((0, 3))
+        )
+        self.default_mocap_quat = (
+            np.array(m.body_quat[m.body_mocapid >= 0][np.argsort(m.body_mocapid[m.body_mocapid >= 0])])
+            if m.nmocap
+            else np.zeros((0, 4))
+        )
         self._template = mjx.put_data(m, mujoco.MjData(m))
         self._ctrl_profile = jnp.asarray(control_profile(cfg), jnp.float32)
 
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def from_file(cls, path: str | os.PathLike, config: SimConfig = SimConfig()) -> "Simulator":
+    def from_file(cls, path: str | os.PathLike, config: SimConfig = SimConfig()) -> Simulator:
         return cls(mujoco.MjSpec.from_file(os.fspath(path)), config)
 
     @classmethod
-    def from_xml(cls, xml: str, config: SimConfig = SimConfig()) -> "Simulator":
+    def from_xml(cls, xml: str, config: SimConfig = SimConfig()) -> Simulator:
         return cls(mujoco.MjSpec.from_string(xml), config)
 
     # ------------------------------------------------------------------ functional API
-    def init(self, pose: jax.Array, mocap_pos: Optional[jax.Array] = None,
-             mocap_quat: Optional[jax.Array] = None) -> mjx.Data:
+    def init(
+        self, pose: jax.Array, mocap_pos: jax.Array | None = None, mocap_quat: jax.Array | None = None
+    ) -> mjx.Data:
         """Fresh data with the agent at pose (x, y, yaw) at rest and the given mocap poses.
 
         Runs kinematics so geom_xpos / geom_xmat (mocap objects included) are valid for sensing.
@@ -321,13 +333,15 @@ class Simulator:
         yaw = pose[2]
         fwd = jnp.stack([jnp.cos(yaw), jnp.sin(yaw)]) * cfg.forward_m
         turn = math.radians(cfg.turn_deg)
-        table = jnp.stack([
-            jnp.concatenate([fwd, jnp.zeros(1)]),
-            jnp.concatenate([-fwd, jnp.zeros(1)]),
-            jnp.array([0.0, 0.0, turn]),
-            jnp.array([0.0, 0.0, -turn]),
-            jnp.zeros(3),
-        ])
+        table = jnp.stack(
+            [
+                jnp.concatenate([fwd, jnp.zeros(1)]),
+                jnp.concatenate([-fwd, jnp.zeros(1)]),
+                jnp.array([0.0, 0.0, turn]),
+                jnp.array([0.0, 0.0, -turn]),
+                jnp.zeros(3),
+            ]
+        )
         return table[jnp.clip(action, 0, NUM_ACTIONS - 1)]
 
     def step(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
@@ -340,8 +354,7 @@ class Simulator:
 
         data, _ = jax.lax.scan(substep, data, self._ctrl_profile.astype(data.ctrl.dtype))
         # Brake: whatever contacts did, nothing carries into the next action.
-        return data.replace(qvel=data.qvel.at[self.dof_adr].set(0.0),
-                            ctrl=jnp.zeros_like(data.ctrl))
+        return data.replace(qvel=data.qvel.at[self.dof_adr].set(0.0), ctrl=jnp.zeros_like(data.ctrl))
 
     def agent_pose(self, data: mjx.Data) -> jax.Array:
         """(x, y, yaw) with yaw wrapped to [-pi, pi)."""

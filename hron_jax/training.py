@@ -27,14 +27,16 @@ too (orbax reshards the env states), but then results agree only up to the order
 reductions (measured: sharded vs unsharded params differ by ~1e-7 after 8 updates; chaotic
 training amplifies that to ~5e-4 after 300).
 """
+
 from __future__ import annotations
 
 import dataclasses
 import functools
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -43,17 +45,18 @@ from hron_jax.metrics_log import MetricsLog, plot_learning_curves, summarize_chu
 from hron_jax.run_config import RESUMABLE, TrainConfig, build_env, build_network, config_diff, run_label
 from hron_jax.run_dir import checkpoint_manager, load_config, restore_runner, save_config, storable
 
+
 class Programs(NamedTuple):
     env: Any
     network: Any
     ppo: Any
     mesh: Any
-    init: Callable          # jitted: keys u32[S, 2] -> RunnerState [S, ...]
-    chunk: Callable         # jitted: (runner, n static) -> (runner, metrics f32[S, n])
-    abstract: Any           # RunnerState of ShapeDtypeStruct with shardings
-    shardings: Any          # RunnerState of NamedSharding
+    init: Callable  # jitted: keys u32[S, 2] -> RunnerState [S, ...]
+    chunk: Callable  # jitted: (runner, n static) -> (runner, metrics f32[S, n])
+    abstract: Any  # RunnerState of ShapeDtypeStruct with shardings
+    shardings: Any  # RunnerState of NamedSharding
     compiler_options: dict  # XLA options of every compile (FAST_COMPILE or none)
-    compiled: dict          # 'init' / n -> AOT-compiled executable (shared by every Trainer)
+    compiled: dict  # 'init' / n -> AOT-compiled executable (shared by every Trainer)
 
     def initialize(self, keys):
         """init(keys), compiled with compiler_options."""
@@ -79,16 +82,20 @@ FAST_COMPILE = {'xla_backend_optimization_level': 0, 'xla_llvm_disable_expensive
 def make_mesh(num_envs: int):
     """1-D mesh over all local devices; env batches are split over its 'devices' axis."""
     import jax
+
     devices = jax.local_devices()
     if num_envs % len(devices):
-        raise UsageError(f'--num-envs {num_envs} is not divisible by the {len(devices)} local devices '
-                         f'({devices[0].platform}); use a multiple of {len(devices)}')
+        raise UsageError(
+            f'--num-envs {num_envs} is not divisible by the {len(devices)} local devices '
+            f'({devices[0].platform}); use a multiple of {len(devices)}'
+        )
     return jax.sharding.Mesh(np.asarray(devices), ('devices',))
 
 
 def seed_keys(config: TrainConfig):
     import jax
     import jax.numpy as jnp
+
     return jnp.stack([jax.random.PRNGKey(config.seed + i) for i in range(config.num_seeds)])
 
 
@@ -96,12 +103,19 @@ def _program_key(config: TrainConfig) -> TrainConfig:
     """The config with fields that do not change the compiled program normalised (cache key)."""
     ppo = config.ppo
     total = ppo.total_timesteps if ppo.anneal_lr else ppo.batch_size
-    return dataclasses.replace(config, seed=0, checkpoint_every=1, keep_checkpoints=1,
-                               log_every=1, ppo=dataclasses.replace(ppo, total_timesteps=total))
+    return dataclasses.replace(
+        config,
+        seed=0,
+        checkpoint_every=1,
+        keep_checkpoints=1,
+        log_every=1,
+        ppo=dataclasses.replace(ppo, total_timesteps=total),
+    )
 
 
 def programs(config: TrainConfig) -> Programs:
     import jax
+
     return _programs(_program_key(config), tuple(jax.local_devices()))
 
 
@@ -110,6 +124,7 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
     import jax
     import jax.numpy as jnp
     from jax.sharding import NamedSharding, PartitionSpec
+
     from hron_jax.ppo import make_ppo
 
     del devices  # part of the cache key only
@@ -117,13 +132,14 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
     try:
         env = build_env(config)
         network = build_network(config, env.num_actions)
-    except (ValueError, TypeError, OSError) as e:   # e.g. a scene file the loader rejects
+    except (ValueError, TypeError, OSError) as e:  # e.g. a scene file the loader rejects
         raise UsageError(f'cannot build the {config.task} env / {config.model} model: {e}') from None
     ppo = make_ppo(config.ppo, env, network)
     add = functools.partial(jax.tree.map, lambda x: x[None])
     drop = functools.partial(jax.tree.map, lambda x: x[0])
 
     if config.num_seeds == 1:
+
         def init(keys):
             return add(ppo.init(keys[0]))
 
@@ -139,8 +155,10 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
         runner, metrics = updates(runner, n)
         # Checked once per chunk on the device (one reduction over the parameters), so a NaN
         # never reaches a checkpoint; non-finite parameters make the next update's loss NaN too.
-        params_ok = functools.reduce(jnp.logical_and, [
-            jnp.isfinite(x).reshape(x.shape[0], -1).all(1) for x in jax.tree.leaves(runner.params)])
+        params_ok = functools.reduce(
+            jnp.logical_and,
+            [jnp.isfinite(x).reshape(x.shape[0], -1).all(1) for x in jax.tree.leaves(runner.params)],
+        )
         bad = ~jnp.isfinite(metrics['loss'])
         metrics['nonfinite'] = bad.at[:, -1].set(bad[:, -1] | ~params_ok).astype(jnp.float32)
         return runner, metrics
@@ -152,14 +170,24 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
         params=jax.tree.map(lambda _: replicated, abstract.params),
         opt_state=jax.tree.map(lambda _: replicated, abstract.opt_state),
         env_state=jax.tree.map(lambda _: env_sharded, abstract.env_state),
-        rng=replicated, update=replicated)
-    abstract = jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
-                            abstract, shardings)
-    return Programs(env=env, network=network, ppo=ppo, mesh=mesh,
-                    init=jax.jit(init, out_shardings=shardings),
-                    chunk=jax.jit(chunk, static_argnums=1, out_shardings=(shardings, replicated)),
-                    abstract=abstract, shardings=shardings,
-                    compiler_options=dict(FAST_COMPILE) if config.fast_compile else {}, compiled={})
+        rng=replicated,
+        update=replicated,
+    )
+    abstract = jax.tree.map(
+        lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract, shardings
+    )
+    return Programs(
+        env=env,
+        network=network,
+        ppo=ppo,
+        mesh=mesh,
+        init=jax.jit(init, out_shardings=shardings),
+        chunk=jax.jit(chunk, static_argnums=1, out_shardings=(shardings, replicated)),
+        abstract=abstract,
+        shardings=shardings,
+        compiler_options=dict(FAST_COMPILE) if config.fast_compile else {},
+        compiled={},
+    )
 
 
 class Trainer:
@@ -173,9 +201,18 @@ class Trainer:
     A NaN / Inf in a chunk raises NonFiniteError; the state before that chunk is checkpointed.
     """
 
-    def __init__(self, config: TrainConfig, run_dir, *, resume: bool = False, progress: bool = True,
-                 tensorboard: bool = True, log: Callable[[str], None] | None = None):
+    def __init__(
+        self,
+        config: TrainConfig,
+        run_dir,
+        *,
+        resume: bool = False,
+        progress: bool = True,
+        tensorboard: bool = True,
+        log: Callable[[str], None] | None = None,
+    ):
         import jax
+
         self.config = config
         self.run_dir = Path(run_dir)
         self.progress = progress
@@ -184,20 +221,26 @@ class Trainer:
             saved = load_config(self.run_dir)
             diff = {k: v for k, v in config_diff(saved, config).items() if k not in RESUMABLE}
             if diff:
-                raise UsageError(f'{self.run_dir / "config.json"} differs from the requested config in '
-                                 + ', '.join(f'{k} (saved {a!r}, given {b!r})' for k, (a, b) in diff.items()))
+                raise UsageError(
+                    f'{self.run_dir / "config.json"} differs from the requested config in '
+                    + ', '.join(f'{k} (saved {a!r}, given {b!r})' for k, (a, b) in diff.items())
+                )
             if config.ppo.anneal_lr and config.ppo.total_timesteps != saved.ppo.total_timesteps:
-                raise UsageError('total steps cannot change on resume when the learning rate is '
-                                 'annealed over them (--anneal-lr)')
+                raise UsageError(
+                    'total steps cannot change on resume when the learning rate is '
+                    'annealed over them (--anneal-lr)'
+                )
         elif (self.run_dir / 'config.json').exists():
-            raise UsageError(f'{self.run_dir} already holds a run; continue it with --resume '
-                             f'{self.run_dir} or choose another --out')
+            raise UsageError(
+                f'{self.run_dir} already holds a run; continue it with --resume '
+                f'{self.run_dir} or choose another --out'
+            )
         self.programs = programs(config)
         t = time.perf_counter()
         if resume:
             self.runner, step = restore_runner(self.run_dir, self.programs.abstract, log=self._log)
             self._log(f'resumed {self.run_dir} at update {step} / {config.num_updates}')
-            save_config(self.run_dir, config)   # RESUMABLE fields may have changed
+            save_config(self.run_dir, config)  # RESUMABLE fields may have changed
         else:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             save_config(self.run_dir, config)
@@ -209,12 +252,15 @@ class Trainer:
         if not resume:
             self._save()
         self.metrics = MetricsLog(self.run_dir, step if resume else None, tensorboard)
-        self._log(f'init: {time.perf_counter() - t:.1f} s; {config.num_seeds} seed(s) x '
-                  f'{config.ppo.num_envs} envs on {len(self.programs.mesh.devices)} device(s)')
+        self._log(
+            f'init: {time.perf_counter() - t:.1f} s; {config.num_seeds} seed(s) x '
+            f'{config.ppo.num_envs} envs on {len(self.programs.mesh.devices)} device(s)'
+        )
 
     # -- checkpoints ----------------------------------------------------------------------------
     def _save(self) -> None:
         import orbax.checkpoint as ocp
+
         if self.update in self.manager.all_steps():
             return
         self.manager.save(self.update, args=ocp.args.StandardSave(storable(self.runner)))
@@ -226,14 +272,17 @@ class Trainer:
         self.metrics.flush()
         if self.metrics.rows:
             c = self.config
-            title = (f'{c.task}{" + distractors" if c.distractors else ""}: {run_label(c)}, '
-                     f'{c.num_seeds} seed(s)')
-            plot_learning_curves({run_label(c): self.metrics.rows},
-                                 self.run_dir / 'learning_curve.png', title)
+            title = (
+                f'{c.task}{" + distractors" if c.distractors else ""}: {run_label(c)}, {c.num_seeds} seed(s)'
+            )
+            plot_learning_curves(
+                {run_label(c): self.metrics.rows}, self.run_dir / 'learning_curve.png', title
+            )
 
     # -- training -------------------------------------------------------------------------------
     def run(self, max_updates: int | None = None, should_stop: Callable[[], bool] | None = None):
         import jax
+
         c = self.config
         total = c.num_updates
         stop_at = total if max_updates is None else min(total, self.update + max_updates)
@@ -250,9 +299,18 @@ class Trainer:
             if dt > 1.0:
                 self._log(f'compiled the {n}-update chunk in {dt:.1f} s')
         from tqdm import tqdm
-        bar = tqdm(total=total * steps_per_update, initial=self.update * steps_per_update,
-                   unit='step', unit_scale=True, dynamic_ncols=True, disable=not self.progress,
-                   file=sys.stderr, mininterval=0.5, smoothing=0.1)
+
+        bar = tqdm(
+            total=total * steps_per_update,
+            initial=self.update * steps_per_update,
+            unit='step',
+            unit_scale=True,
+            dynamic_ncols=True,
+            disable=not self.progress,
+            file=sys.stderr,
+            mininterval=0.5,
+            smoothing=0.1,
+        )
         last_ckpt = self.update
         wall0 = self.metrics.wall_time
         t_run = time.perf_counter()
@@ -270,8 +328,9 @@ class Trainer:
                 self.runner = runner
                 self.update += n
                 summary = summarize_chunk(metrics)
-                row = self.metrics.append(self.update, summary, wall0 + time.perf_counter() - t_run,
-                                          n * steps_per_update / dt)
+                row = self.metrics.append(
+                    self.update, summary, wall0 + time.perf_counter() - t_run, n * steps_per_update / dt
+                )
                 bar.update(n * steps_per_update)
                 bar.set_postfix_str(_postfix(row, self.update, total), refresh=False)
                 if self.update - last_ckpt >= c.checkpoint_every or self.update == total:
@@ -281,7 +340,7 @@ class Trainer:
             bar.close()
             try:
                 self.checkpoint()
-            except Exception:   # keep the original error
+            except Exception:  # keep the original error
                 pass
             raise
         bar.close()
@@ -291,7 +350,7 @@ class Trainer:
     def _check_finite(self, nonfinite) -> None:
         """NonFiniteError naming the first update (and seeds) whose loss or parameters are NaN /
         Inf; the state stays at the chunk's start, which the exit path checkpoints."""
-        bad = np.asarray(nonfinite) > 0                     # [S, n]
+        bad = np.asarray(nonfinite) > 0  # [S, n]
         if not bad.any():
             return
         i = int(bad.any(0).argmax())
@@ -300,7 +359,8 @@ class Trainer:
             f'NaN or Inf in the loss or parameters at update {self.update + i + 1} (seed '
             f'{", ".join(map(str, seeds))}); stopped with the last finite state checkpointed at '
             f'update {self.update} in {self.run_dir / "checkpoints"}; start a new run with a lower '
-            '--lr or --max-grad-norm')
+            '--lr or --max-grad-norm'
+        )
 
     def close(self) -> None:
         self.manager.wait_until_finished()
@@ -312,4 +372,5 @@ def _postfix(row: dict, update: int, total: int) -> str:
     def f(k, fmt):
         v = row.get(k)
         return '-' if v is None else format(v, fmt)
+
     return f'upd {update}/{total} SR {f("success", ".3f")} ret {f("return", ".2f")}'

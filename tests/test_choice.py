@@ -1,4 +1,5 @@
 """Relational object choice task: rewards, graph encoding of the relations, padding, goal, images."""
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -7,8 +8,16 @@ import pytest
 from hron_jax import goals
 from hron_jax import graph_types as GT
 from hron_jax.envs.base import METRIC_KEYS, AutoResetWrapper, Env
-from hron_jax.envs.choice import (CIRCLE_CLASS, LEFT, RECTANGLE_CLASS, RIGHT, TRIANGLE_CLASS,
-                                  ChoiceConfig, ChoiceEnv, render)
+from hron_jax.envs.choice import (
+    CIRCLE_CLASS,
+    LEFT,
+    RECTANGLE_CLASS,
+    RIGHT,
+    TRIANGLE_CLASS,
+    ChoiceConfig,
+    ChoiceEnv,
+    render,
+)
 
 PLAIN = ChoiceEnv(ChoiceConfig())
 DISTRACT = ChoiceEnv(ChoiceConfig(distractors=True, image_obs=True, image_size=32))
@@ -93,8 +102,12 @@ def test_edges_encode_the_relation(batch):
             assert len(rev) == 1 and g.edges['edge_type'][rev[0]] == GT.REVERSE_EDGE_TYPE[et]
         assert seen_sides == {LEFT, RIGHT}
         # Every live edge is a legal (type, sender type, receiver type) triple of the HGT.
-        assert GT.check_graph_types(n['node_type'], g.senders, g.receivers,
-                                    g.edges['edge_type'], g.edges['mask']).size == 0
+        assert (
+            GT.check_graph_types(
+                n['node_type'], g.senders, g.receivers, g.edges['edge_type'], g.edges['mask']
+            ).size
+            == 0
+        )
 
 
 def test_padding_masks_and_distractors(batch):
@@ -144,7 +157,8 @@ def test_goal_encoding(batch):
         assert obs['goal'][goals.GOAL_SLICES['room']].sum() == 0
     np.testing.assert_array_equal(
         goals.encode_goal(*goals.goal_indices('circle', 'under', 'rectangle', None)),
-        batch.obs['goal'][np.argmin(batch.inner.goal_above)])
+        batch.obs['goal'][np.argmin(batch.inner.goal_above)],
+    )
 
 
 def test_image_obs_and_render(batch):
@@ -173,5 +187,6 @@ def test_auto_reset_starts_a_new_scene():
     # New episode's obs and counters; the pre-reset obs is kept in final_obs.
     assert float(nxt.info['steps']) == 0.0
     assert not np.allclose(nxt.obs['graph'].nodes['pos'], state.obs['graph'].nodes['pos'])
-    np.testing.assert_array_equal(nxt.info['final_obs']['graph'].nodes['pos'],
-                                  state.obs['graph'].nodes['pos'])
+    np.testing.assert_array_equal(
+        nxt.info['final_obs']['graph'].nodes['pos'], state.obs['graph'].nodes['pos']
+    )

@@ -24,21 +24,26 @@ EPS = geo.stencil_error_bound(48)  # 0.75 %: worst open-space overestimate of th
 
 
 def _box(x0, y0, x1, y1, z0=0.0, z1=1.0, yaw_deg=0.0, extra=""):
-    return (f'<geom type="box" size="{(x1 - x0) / 2} {(y1 - y0) / 2} {(z1 - z0) / 2}" '
-            f'pos="{(x0 + x1) / 2} {(y0 + y1) / 2} {(z0 + z1) / 2}" '
-            f'euler="0 0 {yaw_deg}" {extra}/>')
+    return (
+        f'<geom type="box" size="{(x1 - x0) / 2} {(y1 - y0) / 2} {(z1 - z0) / 2}" '
+        f'pos="{(x0 + x1) / 2} {(y0 + y1) / 2} {(z0 + z1) / 2}" '
+        f'euler="0 0 {yaw_deg}" {extra}/>'
+    )
 
 
 def _model(geoms="", bodies=""):
-    xml = (f'<mujoco><asset><material name="m"/></asset><worldbody>'
-           f'<geom name="floor" type="box" size="3 3 0.05" pos="0 0 -0.05"/>{geoms}{bodies}'
-           f'</worldbody></mujoco>')
+    xml = (
+        f'<mujoco><asset><material name="m"/></asset><worldbody>'
+        f'<geom name="floor" type="box" size="3 3 0.05" pos="0 0 -0.05"/>{geoms}{bodies}'
+        f'</worldbody></mujoco>'
+    )
     return mujoco.MjModel.from_xml_string(xml)
 
 
 def _grid(geoms="", bodies="", radius=R, **kw):
-    return geo.occupancy_grid(_model(geoms, bodies), config=geo.GridConfig(
-        cell_size=H, agent_radius=radius, **kw))
+    return geo.occupancy_grid(
+        _model(geoms, bodies), config=geo.GridConfig(cell_size=H, agent_radius=radius, **kw)
+    )
 
 
 def _point_field(grid, xy):
@@ -52,10 +57,12 @@ def _point_field(grid, xy):
 
 # --- exact shortest paths among rounded rectangles (visibility graph) ----------------------------
 
+
 def _rect(cx, cy, hx, hy, yaw):
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([cx, cy]) + np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]]) @ np.array(
-        [[c, s], [-s, c]])
+        [[c, s], [-s, c]]
+    )
 
 
 def _seg_poly_dist(a, b, poly):
@@ -72,7 +79,8 @@ def _seg_poly_dist(a, b, poly):
 
     def cross(o, p, q):
         return (p[..., 0] - o[..., 0]) * (q[..., 1] - o[..., 1]) - (p[..., 1] - o[..., 1]) * (
-            q[..., 0] - o[..., 0])
+            q[..., 0] - o[..., 0]
+        )
 
     crossing = (cross(U, V, A) * cross(U, V, B) < 0) & (cross(A, B, U) * cross(A, B, V) < 0)
     d = np.where(crossing, 0.0, d).min(1)
@@ -103,12 +111,12 @@ def _exact_path(a, b, rects, r=R, arc_deg=5.0, tol=2e-3):
     for poly in rects:
         ok &= _seg_poly_dist(p[i], p[j], poly) >= r - tol
     w = np.linalg.norm(p[i] - p[j], axis=1)
-    m = csr_matrix((np.r_[w[ok], w[ok]], (np.r_[i[ok], j[ok]], np.r_[j[ok], i[ok]])),
-                   shape=(len(p), len(p)))
+    m = csr_matrix((np.r_[w[ok], w[ok]], (np.r_[i[ok], j[ok]], np.r_[j[ok], i[ok]])), shape=(len(p), len(p)))
     return dijkstra(m, indices=0)[1]
 
 
 # --- rasterisation -------------------------------------------------------------------------------
+
 
 def test_rasterisation_matches_analytic_footprints():
     yaw = math.radians(30)
@@ -122,7 +130,8 @@ def test_rasterisation_matches_analytic_footprints():
         '<geom type="capsule" fromto="-2 -1.5 0.3 -0.8 -0.8 0.3" size="0.1"/>'
         # vertical capsule and sphere: discs
         '<geom type="capsule" size="0.15 0.4" pos="1.5 -1.5 0.6"/>'
-        '<geom type="sphere" size="0.25" pos="0.2 -1.8 0.5"/>')
+        '<geom type="sphere" size="0.25" pos="0.2 -1.8 0.5"/>'
+    )
     grid = _grid(geoms)
     assert grid.shape == (60, 60) and grid.supersample == 3
     fine = np.asarray(grid.fine)
@@ -157,14 +166,18 @@ def test_rasterisation_matches_analytic_footprints():
 
 
 def test_obstacle_filters():
-    geoms = (_box(-2.5, -2.5, -2.0, -2.0, 1.5, 1.7)  # above the agent (height 1.2): not an obstacle
-             + _box(-1.0, -2.5, -0.5, -2.0, extra='contype="0" conaffinity="0"')  # visual only
-             + _box(0.5, -2.5, 1.0, -2.0, extra='contype="2" conaffinity="2"')  # other bits
-             + _box(2.0, 2.0, 2.5, 2.5, 0.0, 0.1))  # low step: an obstacle
-    bodies = ('<body name="object:apple:0" mocap="true" pos="0 0 0.5">'
-              '<geom type="sphere" size="0.3"/></body>'
-              '<body name="cart" pos="-2 2 0.5"><joint type="slide" axis="1 0 0"/>'
-              '<geom type="box" size="0.3 0.3 0.3"/></body>')
+    geoms = (
+        _box(-2.5, -2.5, -2.0, -2.0, 1.5, 1.7)  # above the agent (height 1.2): not an obstacle
+        + _box(-1.0, -2.5, -0.5, -2.0, extra='contype="0" conaffinity="0"')  # visual only
+        + _box(0.5, -2.5, 1.0, -2.0, extra='contype="2" conaffinity="2"')  # other bits
+        + _box(2.0, 2.0, 2.5, 2.5, 0.0, 0.1)
+    )  # low step: an obstacle
+    bodies = (
+        '<body name="object:apple:0" mocap="true" pos="0 0 0.5">'
+        '<geom type="sphere" size="0.3"/></body>'
+        '<body name="cart" pos="-2 2 0.5"><joint type="slide" axis="1 0 0"/>'
+        '<geom type="box" size="0.3 0.3 0.3"/></body>'
+    )
     grid = _grid(geoms, bodies)
     c = np.asarray(grid.centres())
 
@@ -195,6 +208,7 @@ def test_world_cell_round_trip():
 
 # --- distance fields -----------------------------------------------------------------------------
 
+
 def test_free_space_is_euclidean_within_stencil_bound():
     grid = _grid()
     src = np.array([0.25, -0.45])  # a cell centre
@@ -223,7 +237,7 @@ def _circle_wrap(a, b, c, rad):
         return float(np.linalg.norm(ab))
     theta = math.acos(np.clip((a - c) @ (b - c) / (da * db), -1, 1))
     arc = theta - math.acos(rad / da) - math.acos(rad / db)
-    return math.sqrt(da ** 2 - rad ** 2) + math.sqrt(db ** 2 - rad ** 2) + rad * arc
+    return math.sqrt(da**2 - rad**2) + math.sqrt(db**2 - rad**2) + rad * arc
 
 
 def test_detour_around_sphere_matches_closed_form():
@@ -244,7 +258,7 @@ def test_detour_around_wall_end_matches_hand_computed():
     a, b = np.array([-0.95, -0.95]), np.array([0.95, -0.95])  # on cell centres
     c1 = np.array([-0.05, 0.5])
     dist = np.linalg.norm(a - c1)
-    tangent = math.sqrt(dist ** 2 - R ** 2)
+    tangent = math.sqrt(dist**2 - R**2)
     ang = math.atan2(*(a - c1)[::-1])  # direction C1 -> A
     touch = ang - math.acos(R / dist)  # the tangent point on the side facing the wall's end
     wrap = (touch - math.pi / 2) % (2 * math.pi)  # arc from the tangent point to the top
@@ -255,10 +269,15 @@ def test_detour_around_wall_end_matches_hand_computed():
 
 
 def test_rotated_obstacles_match_visibility_graph():
-    rects = [(-1.0, 0.5, 0.9, 0.1, math.radians(25)), (1.0, -0.6, 0.5, 0.3, math.radians(-60)),
-             (0.2, 1.9, 0.8, 0.1, 0.0)]
-    geoms = "".join(f'<geom type="box" size="{hx} {hy} 0.6" pos="{x} {y} 0.6" '
-                    f'euler="0 0 {math.degrees(t)}"/>' for x, y, hx, hy, t in rects)
+    rects = [
+        (-1.0, 0.5, 0.9, 0.1, math.radians(25)),
+        (1.0, -0.6, 0.5, 0.3, math.radians(-60)),
+        (0.2, 1.9, 0.8, 0.1, 0.0),
+    ]
+    geoms = "".join(
+        f'<geom type="box" size="{hx} {hy} 0.6" pos="{x} {y} 0.6" euler="0 0 {math.degrees(t)}"/>'
+        for x, y, hx, hy, t in rects
+    )
     grid = _grid(geoms)
     polys = [_rect(*r) for r in rects]
     b = (0.05, 0.15)
@@ -270,8 +289,7 @@ def test_rotated_obstacles_match_visibility_graph():
 
 
 def test_closed_room_is_unreachable():
-    walls = (_box(-1, -1, 1, -0.9) + _box(-1, 0.9, 1, 1) + _box(-1, -0.9, -0.9, 0.9)
-             + _box(0.9, -0.9, 1, 0.9))
+    walls = _box(-1, -1, 1, -0.9) + _box(-1, 0.9, 1, 1) + _box(-1, -0.9, -0.9, 0.9) + _box(0.9, -0.9, 1, 0.9)
     grid = _grid(walls)
     f = geo.target_fields(grid, jnp.array([[0.0, 0.0]]), 0.3)[0]
     assert np.isfinite(float(geo.geodesic_distance(f, grid, (0.5, 0.5))))
@@ -300,6 +318,7 @@ def test_gap_narrower_than_agent_is_closed(gap, passes):
 
 
 # --- batches, vmap, jit --------------------------------------------------------------------------
+
 
 def test_target_fields_batch_and_vmap():
     grid = _grid(_box(-0.05, -3.0, 0.05, 0.5, 0.0, 2.0))
@@ -354,6 +373,7 @@ def test_bool_sources_and_cell_units():
 
 # --- oracle --------------------------------------------------------------------------------------
 
+
 def test_oracle_reaches_goal_with_good_spl():
     walls = _box(-3.0, -0.05, 1.0, 0.05, 0.0, 2.0) + _box(-0.8, 1.2, 0.8, 1.6, 0.0, 0.8)
     start, target = jnp.array([-2.0, -2.0]), jnp.array([-2.0, 2.2])
@@ -371,13 +391,15 @@ def test_oracle_reaches_goal_with_good_spl():
         along = xy + jnp.linspace(0.0, 1.0, 9)[:, None] * (nxt - xy)
         fwd = (act == geo.ORACLE_FORWARD) & jnp.all(world.los_grid().is_free(along)) & ~done
         xy2 = jnp.where(fwd, nxt, xy)
-        yaw2 = yaw + jnp.where(done, 0.0, jnp.where(act == geo.ORACLE_LEFT, turn,
-                                                    jnp.where(act == geo.ORACLE_RIGHT, -turn, 0.0)))
+        yaw2 = yaw + jnp.where(
+            done, 0.0, jnp.where(act == geo.ORACLE_LEFT, turn, jnp.where(act == geo.ORACLE_RIGHT, -turn, 0.0))
+        )
         done2 = done | (jnp.linalg.norm(xy2 - target) < 1.0)
         return (xy2, yaw2, travelled + jnp.where(fwd, 0.2, 0.0), done2), act
 
     (xy, _, travelled, done), acts = jax.lax.scan(
-        step, (start, jnp.float32(0.0), jnp.float32(0.0), jnp.array(False)), None, length=200)
+        step, (start, jnp.float32(0.0), jnp.float32(0.0), jnp.array(False)), None, length=200
+    )
     assert bool(done), xy
     spl = d0 / max(d0, float(travelled))
     assert spl > 0.85, (spl, d0, float(travelled))

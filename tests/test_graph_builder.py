@@ -21,11 +21,12 @@ import pytest
 
 from hron_jax import graph_types as GT
 from hron_jax.graph_builder import GraphBuilder, GraphConfig, Placement
+from hron_jax.paths import REPO_ROOT
 from hron_jax.scenes import load_scene
 from hron_jax.scenes import vocabulary as V
 from hron_jax.sensors import Camera, CameraConfig
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = REPO_ROOT
 SYMMETRIC = os.path.join(ROOT, "scenes", "symmetric_room.xml")
 BOX_ROOM = os.path.join(ROOT, "tests", "scenes", "box_room.xml")
 
@@ -126,8 +127,14 @@ def check_graph(scene, gb, g, placement, discovered):
     assert set(live) == expected_edges(scene, placement, discovered)
     for s, r, _ in live:
         assert mask[s] and mask[r]
-    assert len(GT.check_graph_types(g.nodes["node_type"], g.senders, g.receivers, g.edges["edge_type"],
-                                   g.edges["mask"])) == 0
+    assert (
+        len(
+            GT.check_graph_types(
+                g.nodes["node_type"], g.senders, g.receivers, g.edges["edge_type"], g.edges["mask"]
+            )
+        )
+        == 0
+    )
     dead = ~np.asarray(g.edges["mask"])
     for x in (g.senders, g.receivers, g.edges["edge_type"]):
         assert not np.asarray(x)[dead].any(), "dead edges must point at node 0 with type 0"
@@ -143,8 +150,12 @@ def sym():
     placement = make_placement(scene)
     xpos, xmat = geom_poses(scene, placement)
     render = jax.jit(cam.render_geoms)
-    return dict(scene=scene, gb=GraphBuilder(scene, GCFG), placement=placement,
-                frame=lambda pose: render(xpos, xmat, jnp.asarray(pose, jnp.float32)))
+    return dict(
+        scene=scene,
+        gb=GraphBuilder(scene, GCFG),
+        placement=placement,
+        frame=lambda pose: render(xpos, xmat, jnp.asarray(pose, jnp.float32)),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -156,6 +167,7 @@ def fns():
         if id(gb) not in cache:
             cache[id(gb)] = (gb, jax.jit(gb.update), jax.jit(gb.graph))
         return cache[id(gb)][1:]
+
     return get
 
 
@@ -190,13 +202,13 @@ def test_discovery_threshold_and_range():
 
     inst[0, 0] = table
     depth[0, 0] = 1.0
-    assert upd(inst, depth) == {"room:kitchen:0"}                       # 1 pixel < min_pixels
+    assert upd(inst, depth) == {"room:kitchen:0"}  # 1 pixel < min_pixels
     inst[0, 1] = table
     depth[0, 1] = 3.01
-    assert upd(inst, depth) == {"room:kitchen:0"}                       # 2nd pixel out of range
+    assert upd(inst, depth) == {"room:kitchen:0"}  # 2nd pixel out of range
     depth[0, 1] = 2.99
     assert upd(inst, depth) == {"room:kitchen:0", "furniture:table:0"}
-    inst[1, :2] = apple1                                                 # not in this episode
+    inst[1, :2] = apple1  # not in this episode
     depth[1, :2] = 1.0
     assert "object:apple:1" not in upd(inst, depth)
 
@@ -208,8 +220,8 @@ def test_seen_table_is_discovered_with_its_features(sym, fns):
     zc = scene.aabb_center[table, 2]
     cases = [
         # (pose, hand-computed position of the table centre (-2.2, 0, zc) in the agent frame)
-        ((-2.2, -1.5, np.pi / 2), (1.5, 0.0, zc)),                     # 1.5 m straight ahead
-        ((-3.2, -1.0, np.pi / 4), (np.sqrt(2.0), 0.0, zc)),           # diagonal, straight ahead
+        ((-2.2, -1.5, np.pi / 2), (1.5, 0.0, zc)),  # 1.5 m straight ahead
+        ((-3.2, -1.0, np.pi / 4), (np.sqrt(2.0), 0.0, zc)),  # diagonal, straight ahead
     ]
     for pose, want in cases:
         pose = jnp.asarray(pose, jnp.float32)
@@ -246,7 +258,7 @@ def test_discovery_over_a_spin_matches_the_frames(sym, fns):
     scene, gb, placement = sym["scene"], sym["gb"], sym["placement"]
     update, graph = fns(gb)
     active = np.ones(gb.max_nodes, bool)
-    active[scene.num_rooms + scene.num_furniture: scene.num_nodes] = np.asarray(placement.active)
+    active[scene.num_rooms + scene.num_furniture : scene.num_nodes] = np.asarray(placement.active)
     seen = np.zeros(gb.max_nodes, bool)
     seen[0] = True
     disc = gb.reset(placement, jnp.asarray([0.0, 0.3, 0.0]))
@@ -266,16 +278,18 @@ def test_discovery_over_a_spin_matches_the_frames(sym, fns):
     # mug under table:0, so object edges of both kinds (relation and floor inRoom) were exercised.
     final = names_of(scene, disc)
     assert {"furniture:table:0", "furniture:table:1", "object:gym_shoe:0", "object:mug:0"} <= final
-    assert not any(n.startswith("object:") and n.split(":")[1] not in ("apple", "bowl", "mug", "gym_shoe")
-                   for n in final)
+    assert not any(
+        n.startswith("object:") and n.split(":")[1] not in ("apple", "bowl", "mug", "gym_shoe") for n in final
+    )
 
 
 def test_edges_between_rooms_and_floor_objects():
     """box_room: roomConnected needs both rooms; a floor object joins the room it lies in."""
     scene = load_scene(BOX_ROOM)
     gb = GraphBuilder(scene, GCFG)
-    placement = make_placement(scene, {"object:apple:0": ("furniture:table:0", "under"),
-                                       "object:apple:1": (None, (3.0, 3.0))})
+    placement = make_placement(
+        scene, {"object:apple:0": ("furniture:table:0", "under"), "object:apple:1": (None, (3.0, 3.0))}
+    )
     kitchen, living = scene.index_of("room:kitchen:0"), scene.index_of("room:living_room:0")
     a0, a1 = scene.index_of("object:apple:0"), scene.index_of("object:apple:1")
     table = scene.index_of("furniture:table:0")
@@ -287,12 +301,28 @@ def test_edges_between_rooms_and_floor_objects():
         inst[: len(ids)] = np.asarray(ids)[:, None]
         return gb.update(disc, placement, pose, jnp.asarray(inst), jnp.ones((4, 4)))
 
-    steps = [(a1, set()),                                    # its room is unknown yet: no edge
-             (living, {(kitchen, living, GT.ROOM_CONNECTED), (living, kitchen, GT.ROOM_CONNECTED),
-                       (a1, living, GT.IN_ROOM), (living, a1, GT.REV_IN_ROOM)}),
-             (a0, {(a0, kitchen, GT.IN_ROOM), (kitchen, a0, GT.REV_IN_ROOM)}),  # table unknown yet
-             (table, {(table, kitchen, GT.IN_ROOM), (kitchen, table, GT.REV_IN_ROOM),
-                      (a0, table, GT.UNDER), (table, a0, GT.REV_UNDER)})]
+    steps = [
+        (a1, set()),  # its room is unknown yet: no edge
+        (
+            living,
+            {
+                (kitchen, living, GT.ROOM_CONNECTED),
+                (living, kitchen, GT.ROOM_CONNECTED),
+                (a1, living, GT.IN_ROOM),
+                (living, a1, GT.REV_IN_ROOM),
+            },
+        ),
+        (a0, {(a0, kitchen, GT.IN_ROOM), (kitchen, a0, GT.REV_IN_ROOM)}),  # table unknown yet
+        (
+            table,
+            {
+                (table, kitchen, GT.IN_ROOM),
+                (kitchen, table, GT.REV_IN_ROOM),
+                (a0, table, GT.UNDER),
+                (table, a0, GT.REV_UNDER),
+            },
+        ),
+    ]
     have = set()
     for node, new in steps:
         disc = see(disc, node)
@@ -308,8 +338,10 @@ def test_padding_never_leaks(sym):
     from hron_jax.models.encoders import SceneGraphEncoder
 
     scene, gb, placement = sym["scene"], sym["gb"], sym["placement"]
-    big = GraphBuilder(scene, GraphConfig(min_pixels=2, detect_range=3.0,
-                                          max_nodes=gb.max_nodes + 9, max_edges=gb.max_edges + 17))
+    big = GraphBuilder(
+        scene,
+        GraphConfig(min_pixels=2, detect_range=3.0, max_nodes=gb.max_nodes + 9, max_edges=gb.max_edges + 17),
+    )
     poses = [jnp.asarray([0.0, 0.3, k * np.pi / 2], jnp.float32) for k in range(4)]
     frames = [sym["frame"](p) for p in poses]
     graphs = []
@@ -324,14 +356,19 @@ def test_padding_never_leaks(sym):
     for k in g.nodes:
         np.testing.assert_array_equal(g.nodes[k], h.nodes[k][:n])
         assert not np.asarray(h.nodes[k][n:]).any()
-    for a, b_ in ((g.senders, h.senders), (g.receivers, h.receivers),
-                  (g.edges["edge_type"], h.edges["edge_type"]), (g.edges["mask"], h.edges["mask"])):
+    for a, b_ in (
+        (g.senders, h.senders),
+        (g.receivers, h.receivers),
+        (g.edges["edge_type"], h.edges["edge_type"]),
+        (g.edges["mask"], h.edges["mask"]),
+    ):
         np.testing.assert_array_equal(a, b_[:e])
         assert not np.asarray(b_[e:]).any()
     # The main model's graph branch (HGT + task-driven pooling over the goal's categories) reads
     # the same vector from both graphs.
-    goal = jnp.asarray([V.class_id("object", "apple"), V.class_id("furniture", "table"),
-                        V.class_id("room", "living_room")])
+    goal = jnp.asarray(
+        [V.class_id("object", "apple"), V.class_id("furniture", "table"), V.class_id("room", "living_room")]
+    )
     enc = SceneGraphEncoder(ModelConfig(hidden=16, heads=2, gnn_layers=2), V.NUM_CLASSES)
     params = jax.jit(enc.init)(jax.random.PRNGKey(0), g, goal)
     apply = jax.jit(enc.apply)
@@ -387,13 +424,13 @@ def test_premap_contents_and_episode_edges(sym, fns):
     scene, placement = sym["scene"], sym["placement"]
     gb = GraphBuilder(scene, GraphConfig(min_pixels=2, detect_range=3.0), premap=True)
     update, graph = fns(gb)
-    pose = jnp.asarray([2.2, -1.5, np.pi / 2], jnp.float32)   # in front of table:1 (apple on top)
+    pose = jnp.asarray([2.2, -1.5, np.pi / 2], jnp.float32)  # in front of table:1 (apple on top)
     disc = gb.reset(placement, pose)
     want = {n for n in scene.names if not n.startswith("object:")}
-    assert names_of(scene, disc) == want                       # never an object, not even the target
+    assert names_of(scene, disc) == want  # never an object, not even the target
     g = graph(disc, placement, pose)
     check_graph(scene, gb, g, placement, disc)
-    assert len(live_edges(g)) == 2 * scene.num_furniture      # furniture <-> room only
+    assert len(live_edges(g)) == 2 * scene.num_furniture  # furniture <-> room only
     disc = update(disc, placement, pose, sym["frame"](pose).instance, sym["frame"](pose).depth)
     assert names_of(scene, disc) == want | {"object:apple:0"}
     g = graph(disc, placement, pose)
@@ -406,13 +443,14 @@ def test_premap_contents_and_episode_edges(sym, fns):
     disc = gb.reset(other, pose)
     assert names_of(scene, disc) == want
     t0 = scene.index_of("furniture:table:0")
-    disc = disc.at[apple].set(True)                            # as if seen
+    disc = disc.at[apple].set(True)  # as if seen
     g = graph(disc, other, pose)
     check_graph(scene, gb, g, other, disc)
     assert {(apple, t0, GT.UNDER), (t0, apple, GT.REV_UNDER)} <= set(live_edges(g))
     assert not {e for e in live_edges(g) if t1 in e[:2] and apple in e[:2]}
-    np.testing.assert_allclose(g.nodes["pos"][apple, 2], np.asarray(other.pos)[apple - scene.num_rooms
-                                                                              - scene.num_furniture, 2])
+    np.testing.assert_allclose(
+        g.nodes["pos"][apple, 2], np.asarray(other.pos)[apple - scene.num_rooms - scene.num_furniture, 2]
+    )
 
 
 def test_jit_vmap_batch_matches_single_envs(sym, fns):

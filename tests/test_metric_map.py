@@ -19,17 +19,18 @@ import numpy as np
 import pytest
 
 from hron_jax.metric_map import MapConfig, MetricMap
+from hron_jax.paths import REPO_ROOT
 from hron_jax.scenes import load_scene
 from hron_jax.scenes import vocabulary as V
 from hron_jax.sensors import Camera, CameraConfig, world_rays
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = REPO_ROOT
 SYMMETRIC = os.path.join(ROOT, "scenes", "symmetric_room.xml")
 
 C = 0.23
 NC = V.NUM_CLASSES
-I0, I1, J0, J1 = 15, 19, 11, 15          # the box's cells (x rows, y columns)
-MARGIN = 0.08                            # floor left inside the border cells
+I0, I1, J0, J1 = 15, 19, 11, 15  # the box's cells (x rows, y columns)
+MARGIN = 0.08  # floor left inside the border cells
 BOX_TOP = 0.5
 X0, X1 = -3 + C * I0 + MARGIN, -3 + C * I1 - MARGIN
 Y0, Y1 = -3 + C * J0 + MARGIN, -3 + C * J1 - MARGIN
@@ -78,8 +79,11 @@ def box(tmp_path_factory):
         if bowl:
             d.mocap_pos[0] = (*BOWL_XY, 0.035)
         mujoco.mj_forward(m, d)
-        out = render(jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32),
-                     jnp.asarray(pose, jnp.float32))
+        out = render(
+            jnp.asarray(d.geom_xpos, jnp.float32),
+            jnp.asarray(d.geom_xmat, jnp.float32),
+            jnp.asarray(pose, jnp.float32),
+        )
         return out
 
     mm = MetricMap(scene, DOWN, MapConfig())
@@ -89,7 +93,7 @@ def box(tmp_path_factory):
 def test_grid_layout(box):
     mm = box["mm"]
     np.testing.assert_allclose(mm.origin, [-3.0, -3.0])
-    assert mm.shape == (27, 27)                        # ceil(6 / 0.23)
+    assert mm.shape == (27, 27)  # ceil(6 / 0.23)
     assert (mm.reset() == -1).all()
 
 
@@ -113,8 +117,12 @@ def test_known_box_fills_exactly_its_cells(box):
     o, dirs = world_rays(jnp.asarray(pose, jnp.float32), DOWN)
     pts = np.asarray(o + f.depth[..., None] * dirs)
     cell = np.floor((pts[..., :2] - mm.origin) / C).astype(int)
-    floor_in_border = (np.asarray(f.semantic) == ROOM_CLS) & (cell[..., 0] == I0) & \
-        (cell[..., 1] >= J0) & (cell[..., 1] < J1)
+    floor_in_border = (
+        (np.asarray(f.semantic) == ROOM_CLS)
+        & (cell[..., 0] == I0)
+        & (cell[..., 1] >= J0)
+        & (cell[..., 1] < J1)
+    )
     assert floor_in_border.sum() > 0
     assert (c[I0, J0:J1] == BOX_CLS).all()
 
@@ -154,13 +162,13 @@ def test_egocentric_crop_orientation(box):
         for where, xy in (("ahead", agent + 1.2 * fwd), ("left", agent + 1.2 * left)):
             key = np.full(mm.shape, -1, np.int32)
             i, j = np.floor((xy - mm.origin) / C).astype(int)
-            key[i - 1:i + 2, j - 1:j + 2] = 300 * NC + BOX_CLS   # a 3 x 3 blob survives resampling
+            key[i - 1 : i + 2, j - 1 : j + 2] = 300 * NC + BOX_CLS  # a 3 x 3 blob survives resampling
             obs = np.asarray(observe(jnp.asarray(key), jnp.asarray([*agent, yaw], jnp.float32)))
             assert obs.shape == (m, m, 3)
             rows, cols = np.nonzero(obs[..., 2] == BOX_CLS)
             assert len(rows) >= 4
             np.testing.assert_allclose(obs[rows, cols, 1], 0.3 / mm.config.max_height, atol=1e-6)
-            along = m / 2 - 0.5 - 1.2 / C                     # crop index 1.2 m from the centre
+            along = m / 2 - 0.5 - 1.2 / C  # crop index 1.2 m from the centre
             r, c = rows.mean(), cols.mean()
             if where == "ahead":
                 assert abs(r - along) < 1.0 and abs(c - (m / 2 - 0.5)) < 1.0, (yaw, r, c)
@@ -173,7 +181,7 @@ def test_egocentric_crop_orientation(box):
     for yaw, side in ((0.0, "ahead"), (np.pi / 2, "right")):
         obs = np.asarray(observe(key, jnp.asarray([0.0, 0.0, yaw], jnp.float32)))
         rows, cols = np.nonzero(obs[..., 2] == BOX_CLS)
-        assert len(rows) == (I1 - I0) * (J1 - J0)               # cell-aligned at 0 and 90 deg
+        assert len(rows) == (I1 - I0) * (J1 - J0)  # cell-aligned at 0 and 90 deg
         if side == "ahead":
             assert rows.max() < m / 2 and abs(cols.mean() - (m / 2 - 0.5)) < 1.0
         else:
@@ -205,9 +213,11 @@ def test_premap_contents():
     key = np.asarray(mm.reset())
     assert key.shape == mm.shape
     c, h = cls(key), height(key)
-    centres = mm.origin + (np.stack(np.meshgrid(np.arange(mm.shape[0]), np.arange(mm.shape[1]),
-                                                indexing="ij"), -1) + 0.5) * C
-    assert (key >= 0).all()                                     # floor and walls cover the bounds
+    centres = (
+        mm.origin
+        + (np.stack(np.meshgrid(np.arange(mm.shape[0]), np.arange(mm.shape[1]), indexing="ij"), -1) + 0.5) * C
+    )
+    assert (key >= 0).all()  # floor and walls cover the bounds
     # Never a pool object (the target included); every category of the file's furniture is there.
     assert not np.isin(c, [V.class_id("object", o) for o in V.OBJECTS]).any()
     assert {V.class_id("furniture", "table"), V.class_id("furniture", "shelf")} <= set(c.ravel().tolist())
@@ -241,7 +251,7 @@ def test_premap_contents():
     d = mujoco.MjData(scene.model)
     apple = scene.index_of("object:apple:0")
     k = scene.slot_names.index("furniture:table:0:onTop:0")
-    top = scene.slot_center[k, 2] - scene.slot_half[k, 2]           # the table's top surface
+    top = scene.slot_center[k, 2] - scene.slot_half[k, 2]  # the table's top surface
     apple_xyz = (scene.slot_center[k, 0] + 0.3, scene.slot_center[k, 1], top + 0.045)
     d.mocap_pos[scene.mocap_id[apple]] = apple_xyz
     mujoco.mj_forward(scene.model, d)

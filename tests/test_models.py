@@ -16,9 +16,18 @@ import numpy as np
 import pytest
 
 from hron_jax import graph_types as gt
-from hron_jax.models import (VARIANTS, ActorCritic, GCNConv, HGTConv, ModelConfig,
-                             attention_readout, edge_relations, make_model, mean_pool,
-                             task_driven_pool)
+from hron_jax.models import (
+    VARIANTS,
+    ActorCritic,
+    GCNConv,
+    HGTConv,
+    ModelConfig,
+    attention_readout,
+    edge_relations,
+    make_model,
+    mean_pool,
+    task_driven_pool,
+)
 from hron_jax.models.pyg_compat import gcn_params_from_pyg, hgt_params_from_pyg
 from hron_jax.models.word_vectors import load_category_vectors
 from hron_jax.scenes import vocabulary
@@ -67,15 +76,30 @@ def _reference(kind):
     else:
         p1, p2 = (gcn_params_from_pyg(d, f"conv{i}.") for i in (1, 2))
         run = _gcn_two_layers
-    graph = dict(x=d["x"], node_type=d["node_type"], mask=np.ones(len(d["x"]), bool),
-                 senders=d["senders"], receivers=d["receivers"], edge_type=d["edge_type"],
-                 edge_mask=np.ones(len(d["senders"]), bool))
+    graph = dict(
+        x=d["x"],
+        node_type=d["node_type"],
+        mask=np.ones(len(d["x"]), bool),
+        senders=d["senders"],
+        receivers=d["receivers"],
+        edge_type=d["edge_type"],
+        edge_mask=np.ones(len(d["senders"]), bool),
+    )
     return d, p1, p2, graph, run
 
 
 def _call(run, p1, p2, g):
-    return run(p1, p2, g["x"], g["node_type"], g["mask"], g["senders"], g["receivers"],
-               g["edge_type"], g["edge_mask"])
+    return run(
+        p1,
+        p2,
+        g["x"],
+        g["node_type"],
+        g["mask"],
+        g["senders"],
+        g["receivers"],
+        g["edge_type"],
+        g["edge_mask"],
+    )
 
 
 def _pad(g, extra_nodes, extra_edges, rng, garbage=1.0):
@@ -95,16 +119,20 @@ def _pad(g, extra_nodes, extra_edges, rng, garbage=1.0):
     receivers = np.concatenate([g["receivers"], pad_s, live_pair_r, dead_r]).astype(np.int32)
     # Dead edges get the most tempting types (legal triples are likely).
     edge_type = np.concatenate([g["edge_type"], rng.integers(0, 9, extra_edges)]).astype(np.int32)
-    edge_mask = np.concatenate([g["edge_mask"], np.zeros(2 * k, bool),
-                                np.ones(extra_edges - 2 * k, bool)])
+    edge_mask = np.concatenate([g["edge_mask"], np.zeros(2 * k, bool), np.ones(extra_edges - 2 * k, bool)])
     # Shuffle the table so dead rows are interleaved with live ones.
     perm_n = rng.permutation(n + extra_nodes)
     inv = np.argsort(perm_n)
     perm_e = rng.permutation(e + extra_edges)
-    out = dict(x=x[perm_n].astype(np.float32), node_type=node_type[perm_n], mask=mask[perm_n],
-               senders=inv[senders][perm_e].astype(np.int32),
-               receivers=inv[receivers][perm_e].astype(np.int32),
-               edge_type=edge_type[perm_e], edge_mask=edge_mask[perm_e])
+    out = dict(
+        x=x[perm_n].astype(np.float32),
+        node_type=node_type[perm_n],
+        mask=mask[perm_n],
+        senders=inv[senders][perm_e].astype(np.int32),
+        receivers=inv[receivers][perm_e].astype(np.int32),
+        edge_type=edge_type[perm_e],
+        edge_mask=edge_mask[perm_e],
+    )
     return out, inv[:n]  # inv[:n]: new row of each original node
 
 
@@ -115,8 +143,10 @@ def test_matches_pyg(kind):
     h1, h2 = _call(run, p1, p2, g)
     err1 = np.abs(np.asarray(h1) - d["out1"]).max()
     err2 = np.abs(np.asarray(h2) - d["out2"]).max()
-    print(f"{kind} vs torch_geometric {d['torch_geometric_version']}: "
-          f"layer1 max err {err1:.2e}, layer2 max err {err2:.2e}")
+    print(
+        f"{kind} vs torch_geometric {d['torch_geometric_version']}: "
+        f"layer1 max err {err1:.2e}, layer2 max err {err2:.2e}"
+    )
     assert err1 < TOL and err2 < TOL
     # The reference must be discriminating: outputs are not trivially small.
     assert np.abs(d["out2"]).max() > 0.1
@@ -169,10 +199,15 @@ def test_permutation_equivariance(kind):
     n, e = len(gp["x"]), len(gp["senders"])
     pn, pe = rng.permutation(n), rng.permutation(e)
     inv = np.argsort(pn)  # new index of old node i
-    gq = dict(x=gp["x"][pn], node_type=gp["node_type"][pn], mask=gp["mask"][pn],
-              senders=inv[gp["senders"]][pe].astype(np.int32),
-              receivers=inv[gp["receivers"]][pe].astype(np.int32),
-              edge_type=gp["edge_type"][pe], edge_mask=gp["edge_mask"][pe])
+    gq = dict(
+        x=gp["x"][pn],
+        node_type=gp["node_type"][pn],
+        mask=gp["mask"][pn],
+        senders=inv[gp["senders"]][pe].astype(np.int32),
+        receivers=inv[gp["receivers"]][pe].astype(np.int32),
+        edge_type=gp["edge_type"][pe],
+        edge_mask=gp["edge_mask"][pe],
+    )
     ha = np.asarray(_call(run, p1, p2, gp)[1])
     hb = np.asarray(_call(run, p1, p2, gq)[1])
     np.testing.assert_allclose(hb, ha[pn], atol=TOL, rtol=0)
@@ -194,8 +229,17 @@ def test_hgt_attention_is_a_softmax_over_live_in_edges():
     d, p1, p2, g, run = _reference("hgt")
     gp, _ = _pad(g, 4, 12, np.random.default_rng(5))
     rel = edge_relations(gp["node_type"], gp["senders"], gp["receivers"], gp["edge_type"])
-    _, state = _HGT.apply({"params": p1}, gp["x"], gp["node_type"], gp["mask"], gp["senders"],
-                          gp["receivers"], rel, gp["edge_mask"], mutable=["attention"])
+    _, state = _HGT.apply(
+        {"params": p1},
+        gp["x"],
+        gp["node_type"],
+        gp["mask"],
+        gp["senders"],
+        gp["receivers"],
+        rel,
+        gp["edge_mask"],
+        mutable=["attention"],
+    )
     (alpha,) = state["attention"]["alpha"]
     alpha = np.asarray(alpha)
     live = gp["edge_mask"] & gp["mask"][gp["senders"]] & gp["mask"][gp["receivers"]]
@@ -221,16 +265,18 @@ def test_hgt_batch_matches_single_graphs_and_differentiates():
     @jax.default_matmul_precision("highest")
     def apply(p, x, node_type, mask, senders, receivers, edge_type, edge_mask):
         rel = edge_relations(node_type, senders, receivers, edge_type)
-        out, state = _HGT.apply({"params": p}, x, node_type, mask, senders, receivers, rel,
-                                edge_mask, mutable=["attention"])
+        out, state = _HGT.apply(
+            {"params": p}, x, node_type, mask, senders, receivers, rel, edge_mask, mutable=["attention"]
+        )
         return out, state["attention"]["alpha"][0]
 
     def loss(p, *a):
         return jnp.sum(jnp.sin(apply(p, *a)[0]))
 
     def args(gg):
-        return tuple(gg[k] for k in ("x", "node_type", "mask", "senders", "receivers",
-                                     "edge_type", "edge_mask"))
+        return tuple(
+            gg[k] for k in ("x", "node_type", "mask", "senders", "receivers", "edge_type", "edge_mask")
+        )
 
     out_b, alpha_b = jax.jit(apply)(params, *args(batch))
     grad_b = jax.jit(jax.grad(loss))(params, *args(batch))
@@ -250,11 +296,13 @@ def test_hgt_batch_matches_single_graphs_and_differentiates():
 
 def test_illegal_relation_triple_is_dropped():
     node_type = jnp.array([gt.ROOM, gt.OBJECT])
-    rel = edge_relations(node_type, jnp.array([0, 1, 1]), jnp.array([1, 0, 0]),
-                         jnp.array([gt.ON_TOP, gt.IN_ROOM, gt.ON_TOP]))
+    rel = edge_relations(
+        node_type, jnp.array([0, 1, 1]), jnp.array([1, 0, 0]), jnp.array([gt.ON_TOP, gt.IN_ROOM, gt.ON_TOP])
+    )
     assert rel.tolist() == [-1, gt.RELATION_INDEX[gt.IN_ROOM, gt.OBJECT, gt.ROOM], -1]
-    assert gt.check_graph_types(np.asarray(node_type), [0, 1], [1, 0], [gt.ON_TOP, gt.IN_ROOM],
-                                [True, True]).tolist() == [0]
+    assert gt.check_graph_types(
+        np.asarray(node_type), [0, 1], [1, 0], [gt.ON_TOP, gt.IN_ROOM], [True, True]
+    ).tolist() == [0]
 
 
 # --- pooling ---------------------------------------------------------------------------------
@@ -291,11 +339,21 @@ def test_task_driven_pool_mask_is_exact():
 
 # --- full models -----------------------------------------------------------------------------
 N_NODES, N_EDGES, IMG, MAP, ACTIONS = 20, 40, 16, 12, 5
-SMALL = ModelConfig(hidden=32, heads=2, conv_features=(8, 8, 8), conv_kernels=(4, 3, 3),
-                    conv_strides=(2, 2, 1), cnn_fc=(32, 32, 32), goal_fc=(32, 32, 32),
-                    fusion_fc=(32, 32, 32), head_fc=(32, 32), gnn_layers=2)
-GOAL_DIM = (len(vocabulary.OBJECTS) + len(vocabulary.RELATIONS) + len(vocabulary.FURNITURE)
-            + len(vocabulary.ROOMS))
+SMALL = ModelConfig(
+    hidden=32,
+    heads=2,
+    conv_features=(8, 8, 8),
+    conv_kernels=(4, 3, 3),
+    conv_strides=(2, 2, 1),
+    cnn_fc=(32, 32, 32),
+    goal_fc=(32, 32, 32),
+    fusion_fc=(32, 32, 32),
+    head_fc=(32, 32),
+    gnn_layers=2,
+)
+GOAL_DIM = (
+    len(vocabulary.OBJECTS) + len(vocabulary.RELATIONS) + len(vocabulary.FURNITURE) + len(vocabulary.ROOMS)
+)
 
 
 def _obs(seed, with_image=True):
@@ -314,21 +372,33 @@ def _obs(seed, with_image=True):
         if ok.any() and s != d:
             senders.append(s), receivers.append(d), etype.append(r.choice(triples[ok, 1]))
     pad = N_EDGES - len(senders)
-    edges = dict(edge_type=np.array(etype + [0] * pad, np.int32),
-                 mask=np.array([True] * len(etype) + [False] * pad))
-    nodes = dict(category=category, node_type=node_type,
-                 pos=(r.standard_normal((N_NODES, 3)) * mask[:, None]).astype(np.float32),
-                 size=(r.random((N_NODES, 3)) * mask[:, None]).astype(np.float32), mask=mask)
-    graph = jraph.GraphsTuple(nodes=nodes, edges=edges,
-                              senders=np.array(senders + [0] * pad, np.int32),
-                              receivers=np.array(receivers + [0] * pad, np.int32),
-                              n_node=np.array([N_NODES], np.int32),
-                              n_edge=np.array([N_EDGES], np.int32), globals=None)
+    edges = dict(
+        edge_type=np.array(etype + [0] * pad, np.int32), mask=np.array([True] * len(etype) + [False] * pad)
+    )
+    nodes = dict(
+        category=category,
+        node_type=node_type,
+        pos=(r.standard_normal((N_NODES, 3)) * mask[:, None]).astype(np.float32),
+        size=(r.random((N_NODES, 3)) * mask[:, None]).astype(np.float32),
+        mask=mask,
+    )
+    graph = jraph.GraphsTuple(
+        nodes=nodes,
+        edges=edges,
+        senders=np.array(senders + [0] * pad, np.int32),
+        receivers=np.array(receivers + [0] * pad, np.int32),
+        n_node=np.array([N_NODES], np.int32),
+        n_edge=np.array([N_EDGES], np.int32),
+        globals=None,
+    )
     goal = np.zeros(GOAL_DIM, np.float32)
     goal[r.choice(GOAL_DIM, 3, replace=False)] = 1
-    obs = dict(graph=graph, goal=goal,
-               goal_classes=np.array([category[0], category[1], -1], np.int32),
-               map=r.random((MAP, MAP, 3)).astype(np.float32))
+    obs = dict(
+        graph=graph,
+        goal=goal,
+        goal_classes=np.array([category[0], category[1], -1], np.int32),
+        map=r.random((MAP, MAP, 3)).astype(np.float32),
+    )
     if with_image:
         obs["rgbd"] = r.random((IMG, IMG, 4)).astype(np.float32)
     return obs
@@ -380,7 +450,7 @@ def test_variant_jit_vmap_and_gradients(name):
 
         def loss(p):
             lg, val = model.apply(p, b)
-            return jnp.sum(jax.nn.log_softmax(lg)[:, 0]) + jnp.sum(val ** 2)
+            return jnp.sum(jax.nn.log_softmax(lg)[:, 0]) + jnp.sum(val**2)
 
         return l1, v1, lb, vb, lv, vv, jax.grad(loss)(v)
 
@@ -393,8 +463,15 @@ def test_variant_jit_vmap_and_gradients(name):
     leaves = jax.tree.leaves(grads)
     assert all(np.isfinite(np.asarray(x)).all() for x in leaves)
     p = variables["params"]["core"]
-    expect = {"goal_encoder", "fusion", "policy_hidden", "policy_out", "value_hidden", "value_out",
-              "rgbd_encoder"}
+    expect = {
+        "goal_encoder",
+        "fusion",
+        "policy_hidden",
+        "policy_out",
+        "value_hidden",
+        "value_out",
+        "rgbd_encoder",
+    }
     expect |= {"map_encoder"} if VARIANTS[name].get("use_map") else set()
     expect |= {"graph_encoder"} if VARIANTS[name].get("use_graph") else set()
     assert set(p) == expect
@@ -418,8 +495,13 @@ def test_main_model_default_sizes_and_attention_readout():
         assert (np.asarray(alpha)[~np.asarray(obs["graph"].edges["mask"])] == 0).all()
     (w,) = ge["pool_weights"]
     nodes = obs["graph"].nodes
-    expect = np.stack([np.isin(nodes["category"][b], obs["goal_classes"][b][obs["goal_classes"][b] >= 0])
-                       & nodes["mask"][b] for b in range(2)]).astype(np.float32)
+    expect = np.stack(
+        [
+            np.isin(nodes["category"][b], obs["goal_classes"][b][obs["goal_classes"][b] >= 0])
+            & nodes["mask"][b]
+            for b in range(2)
+        ]
+    ).astype(np.float32)
     np.testing.assert_array_equal(np.asarray(w), expect)
     # The plain apply (training path) returns the same numbers and no extra state; extra leading
     # axes ([T, B] rollouts) are flattened and restored.
@@ -500,7 +582,6 @@ def test_category_vectors_match_vocabulary():
     assert np.unique(np.round(vec[2:], 4), axis=0).shape[0] == vec.shape[0] - 2
 
 
-
 def test_choice_env_observation_is_accepted():
     """Integration with the symbolic choice task (graph + goal, rgb/depth given apart)."""
     choice = pytest.importorskip("hron_jax.envs.choice")
@@ -512,8 +593,9 @@ def test_choice_env_observation_is_accepted():
     assert logits.shape == (2,) and np.isfinite(np.asarray(logits)).all()
 
 
-@pytest.mark.parametrize("size,kernel,stride", [((32, 32), 8, 4), ((8, 8), 4, 2), ((4, 4), 3, 1),
-                                                ((7, 10), 5, 3), ((9, 9), 2, 2)])
+@pytest.mark.parametrize(
+    "size,kernel,stride", [((32, 32), 8, 4), ((8, 8), 4, 2), ((4, 4), 3, 1), ((7, 10), 5, 3), ((9, 9), 2, 2)]
+)
 def test_patch_conv_equals_xla_convolution(size, kernel, stride):
     """PatchConv (slices + matmul, fast gradients inside lax.scan on XLA:CPU) is nn.Conv: same
     parameter shapes and init, same SAME-padded outputs and gradients as lax's convolution."""

@@ -5,6 +5,7 @@ Compiles are the cost here (MJX step on CPU), so every test shares a few jitted 
 module-scoped fixtures: for each env one `run(episode, rng, actions)` = reset_to + rollout.unroll
 whose actions are scripted where >= 0 and the oracle's where -1, single and vmapped.
 """
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -20,7 +21,7 @@ from hron_jax.scenes import vocabulary as V
 from hron_jax.sim import BACKWARD, FORWARD, STOP
 
 ORACLE = -1
-DIRECTED_T = 45     # = the directed env's max_steps; oracle episodes end (and auto-reset) sooner
+DIRECTED_T = 45  # = the directed env's max_steps; oracle episodes end (and auto-reset) sooner
 EXPLORE_T = 220
 
 
@@ -30,9 +31,11 @@ def _make_run(env, num_steps):
     def run(episode, rng, actions):
         k_env, k_pol = jax.random.split(rng)
         state0 = env.reset_to(episode, k_env)
-        last, _, traj = unroll(env.step, state0, oracle, k_pol, num_steps,
-                               record=N.pose_record(env), actions=actions)
+        last, _, traj = unroll(
+            env.step, state0, oracle, k_pol, num_steps, record=N.pose_record(env), actions=actions
+        )
         return state0, last, traj
+
     return run
 
 
@@ -57,8 +60,7 @@ class Bundle:
 
 @pytest.fixture(scope='module')
 def directed():
-    env = make_env('directed', image_size=16, max_steps=DIRECTED_T, distractors=True,
-                   num_distractors=4)
+    env = make_env('directed', image_size=16, max_steps=DIRECTED_T, distractors=True, num_distractors=4)
     return Bundle(env, DIRECTED_T)
 
 
@@ -79,7 +81,7 @@ def _np(tree):
 
 def _scripted(bundle, actions):
     a = np.full(bundle.T, ORACLE, np.int32)
-    a[:len(actions)] = actions
+    a[: len(actions)] = actions
     return jnp.asarray(a)
 
 
@@ -96,6 +98,7 @@ def _free_cell_near(env, xy, lo, hi, avoid=None):
 
 
 # ---- factory -----------------------------------------------------------------------------------
+
 
 def test_make_env_tasks_and_errors():
     assert TASKS == ('choice', 'directed', 'exploratory')
@@ -122,6 +125,7 @@ def test_directed_env_defaults(directed):
 
 
 # ---- rewards, terminations, truncation (directed, hand-built situations) ----------------------
+
 
 def test_success_when_placed_near_target(directed):
     env = directed.env
@@ -170,7 +174,7 @@ def test_truncation_is_not_termination_and_final_obs(directed):
     traj = _np(traj)
     m = env.config.max_steps
     assert m == directed.T
-    assert not traj['done'][:m - 1].any()
+    assert not traj['done'][: m - 1].any()
     assert traj['done'][m - 1] == 1.0 and traj['truncation'][m - 1] == 1.0
     assert traj['reward'][m - 1] == 0.0 and traj['metrics']['success'][m - 1] == 0.0
     assert traj['metrics']['episode_length'][m - 1] == m
@@ -186,10 +190,12 @@ def test_truncation_is_not_termination_and_final_obs(directed):
     for k in ('rgbd', 'goal', 'goal_classes'):
         np.testing.assert_allclose(np.asarray(final[k]), np.asarray(state0.obs[k]), atol=1e-6)
     for k in ('mask', 'pos', 'category'):
-        np.testing.assert_allclose(np.asarray(final['graph'].nodes[k]),
-                                   np.asarray(state0.obs['graph'].nodes[k]), atol=1e-6)
-    assert not np.array_equal(np.asarray(last.obs['graph'].nodes['pos']),
-                              np.asarray(final['graph'].nodes['pos']))
+        np.testing.assert_allclose(
+            np.asarray(final['graph'].nodes[k]), np.asarray(state0.obs['graph'].nodes[k]), atol=1e-6
+        )
+    assert not np.array_equal(
+        np.asarray(last.obs['graph'].nodes['pos']), np.asarray(final['graph'].nodes['pos'])
+    )
 
 
 def test_one_render_per_step(directed):
@@ -203,8 +209,11 @@ def test_one_render_per_step(directed):
     def count(fn, *args, prim):
         return str(jax.make_jaxpr(fn)(*args)).count(prim + '[')
 
-    prims = [p for p in ('top_k', 'optimization_barrier', 'argmin', 'sort')
-             if count(env.camera.render, state.inner.data, pose, prim=p) > 0]
+    prims = [
+        p
+        for p in ('top_k', 'optimization_barrier', 'argmin', 'sort')
+        if count(env.camera.render, state.inner.data, pose, prim=p) > 0
+    ]
     assert prims
     for p in prims:
         per_render = count(env.camera.render, state.inner.data, pose, prim=p)
@@ -214,6 +223,7 @@ def test_one_render_per_step(directed):
 
 
 # ---- episode sampling: satisfiable goals, relation geometry, distractors ------------------------
+
 
 def _slot_cats(env):
     t = env.tables
@@ -233,7 +243,7 @@ def _check_placements(env, eps, directed_task):
         active = np.nonzero(pl.active)[0]
         assert target in active
         assert np.all(slots[active] >= 0) and np.all(slots[~pl.active] == -1)
-        assert len(set(slots[active].tolist())) == len(active)        # one object per slot
+        assert len(set(slots[active].tolist())) == len(active)  # one object per slot
         for j in active:
             s = slots[j]
             half = V.OBJECT_HALF[scene.vocab_index[off + j]]
@@ -284,11 +294,13 @@ def _ray_checks(scene, eps, count):
             p = pl.pos[j].astype(np.float64)
             furn, rel = int(pl.furniture[j]), int(pl.relation[j])
             eps_z = 1e-3
-            down = mujoco.mj_ray(m, d, p - [0, 0, half[2] - eps_z], np.array([0, 0, -1.0]), None, 1, -1, geomid)
+            down = mujoco.mj_ray(
+                m, d, p - [0, 0, half[2] - eps_z], np.array([0, 0, -1.0]), None, 1, -1, geomid
+            )
             g_down = int(geomid[0])
             up = mujoco.mj_ray(m, d, p + [0, 0, half[2] - eps_z], np.array([0, 0, 1.0]), None, 1, -1, geomid)
             g_up = int(geomid[0])
-            assert 0 <= down < 2 * eps_z, (i, j, down)                 # resting on a support
+            assert 0 <= down < 2 * eps_z, (i, j, down)  # resting on a support
             owner_down = scene.geom_instance[g_down] if g_down >= 0 else -2
             owner_up = scene.geom_instance[g_up] if g_up >= 0 else -2
             if rel == V.ON_TOP:
@@ -335,9 +347,12 @@ def test_exploratory_episodes(explore):
 
 # ---- oracle: SR / SPL (verifies metrics and physics) --------------------------------------------
 
+
 def _report(name, m):
-    print(f'{name}: oracle SR {m["success"].mean():.3f} SPL {m["spl"].mean():.3f} '
-          f'({len(m["success"])} episodes, mean length {m["episode_length"].mean():.1f})')
+    print(
+        f'{name}: oracle SR {m["success"].mean():.3f} SPL {m["spl"].mean():.3f} '
+        f'({len(m["success"])} episodes, mean length {m["episode_length"].mean():.1f})'
+    )
 
 
 def _check_spl(traj):
@@ -352,8 +367,7 @@ def first_episode_metrics(traj) -> dict:
     """Per env (leading batch axis [B, T]), the metrics of its first finished episode (of its last
     step where none finished), plus 'finished' (bool[B])."""
     finished, end = episode_ends(traj['metrics']['episode_done'])
-    out = {k: np.take_along_axis(np.asarray(v), end[:, None], 1)[:, 0]
-           for k, v in traj['metrics'].items()}
+    out = {k: np.take_along_axis(np.asarray(v), end[:, None], 1)[:, 0] for k, v in traj['metrics'].items()}
     out['finished'] = finished
     return out
 
@@ -381,6 +395,7 @@ def test_exploratory_oracle(explore):
 
 
 # ---- determinism and batching ---------------------------------------------------------------------
+
 
 def test_deterministic(directed, directed_oracle):
     again = directed.oracle_batch(0, 16)

@@ -6,16 +6,19 @@ that it produced its four figures and its attention summary. Budget: under 3 min
 (most of it is XLA compilation of the training program and of the two rollouts); measured 30 s
 at load average ~1 and 173 s at ~7 on the shared 2-core development machine.
 """
+
 import json
 from pathlib import Path
 
 import pytest
 
+from hron_jax.paths import REPO_ROOT
+
 nbformat = pytest.importorskip('nbformat')
 nbclient = pytest.importorskip('nbclient')
 pytest.importorskip('ipykernel')
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(REPO_ROOT)
 NOTEBOOK = ROOT / 'notebooks' / 'attention_analysis.ipynb'
 
 
@@ -28,15 +31,26 @@ def test_attention_notebook_runs(tmp_path, monkeypatch):
     monkeypatch.setenv('MPLBACKEND', 'module://matplotlib_inline.backend_inline')
     monkeypatch.setenv('JAX_COMPILATION_CACHE_DIR', str(tmp_path / 'xla'))
     nb = nbformat.read(NOTEBOOK, as_version=4)
-    client = nbclient.NotebookClient(nb, timeout=240, kernel_name='python3',
-                                     resources={'metadata': {'path': str(ROOT)}})
+    client = nbclient.NotebookClient(
+        nb, timeout=240, kernel_name='python3', resources={'metadata': {'path': str(ROOT)}}
+    )
     client.execute()
 
-    errors = [o for c in nb.cells if c.cell_type == 'code' for o in c.get('outputs', [])
-              if o.get('output_type') == 'error']
+    errors = [
+        o
+        for c in nb.cells
+        if c.cell_type == 'code'
+        for o in c.get('outputs', [])
+        if o.get('output_type') == 'error'
+    ]
     assert not errors
-    images = [o for c in nb.cells if c.cell_type == 'code' for o in c.get('outputs', [])
-              if 'image/png' in o.get('data', {})]
+    images = [
+        o
+        for c in nb.cells
+        if c.cell_type == 'code'
+        for o in c.get('outputs', [])
+        if 'image/png' in o.get('data', {})
+    ]
     assert len(images) >= 4, f'expected the 4 figures, got {len(images)} images'
 
     summary = json.loads((run_dir / 'attention_summary.json').read_text())

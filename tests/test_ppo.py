@@ -1,4 +1,5 @@
 """PPO: GAE with truncation, the gymnax adapter, learning, vmapped seeds, chunked == one-shot."""
+
 from typing import Any, NamedTuple
 
 import flax.linen as nn
@@ -18,6 +19,7 @@ from hron_jax.scenes import vocabulary as V
 # --- a small graph policy for the choice task (the project models are tested elsewhere) ---------
 class TinyGraphNet(nn.Module):
     """One round of typed message passing, masked mean pooling, goal concat, 2-layer heads."""
+
     num_actions: int
     hidden: int = 32
 
@@ -25,14 +27,18 @@ class TinyGraphNet(nn.Module):
     def __call__(self, obs):
         def embed(obs):
             g, n = obs['graph'], obs['graph'].nodes
-            x = jnp.concatenate([jax.nn.one_hot(n['category'], V.NUM_CLASSES),
-                                 n['pos'][:, :2], n['size'][:, :2]], -1)
+            x = jnp.concatenate(
+                [jax.nn.one_hot(n['category'], V.NUM_CLASSES), n['pos'][:, :2], n['size'][:, :2]], -1
+            )
             h = nn.relu(nn.Dense(self.hidden)(x))
             e = jax.nn.one_hot(g.edges['edge_type'], GT.NUM_EDGE_TYPES)
             m = nn.relu(nn.Dense(self.hidden)(jnp.concatenate([h[g.senders], e], -1)))
             m = m * g.edges['mask'][:, None]
-            h = nn.relu(nn.Dense(self.hidden)(jnp.concatenate(
-                [h, jax.ops.segment_sum(m, g.receivers, num_segments=h.shape[0])], -1)))
+            h = nn.relu(
+                nn.Dense(self.hidden)(
+                    jnp.concatenate([h, jax.ops.segment_sum(m, g.receivers, num_segments=h.shape[0])], -1)
+                )
+            )
             mask = n['mask'][:, None]
             return jnp.concatenate([(h * mask).sum(0) / jnp.maximum(mask.sum(), 1), obs['goal']])
 
@@ -150,9 +156,16 @@ class GymnaxWrapper:
         trunc_flag = _f32(info['truncation']) if 'truncation' in info else jnp.zeros((), jnp.float32)
         terminated = done * (1.0 - trunc_flag)
         new = next_state(
-            state, obs, GymnaxInner(env_state=env_state, rng=rng), reward, terminated,
-            success=info.get('success', 0.0), spl=info.get('spl'),
-            path_length=info.get('path_length', 0.0), max_steps=self.max_steps)
+            state,
+            obs,
+            GymnaxInner(env_state=env_state, rng=rng),
+            reward,
+            terminated,
+            success=info.get('success', 0.0),
+            spl=info.get('spl'),
+            path_length=info.get('path_length', 0.0),
+            max_steps=self.max_steps,
+        )
         # An env-reported truncation ends the episode too (next_state only knows max_steps).
         truncation = jnp.maximum(new.info['truncation'], trunc_flag * done)
         done = jnp.maximum(new.done, truncation)
@@ -193,7 +206,7 @@ def test_gymnax_wrapper(auto_reset):
     step = jax.jit(env.step)
     s = env.reset(jax.random.PRNGKey(0))
     # Walking right reaches the end in 4 steps: terminated with success, the final obs is the end.
-    for t in range(4):
+    for _ in range(4):
         s = step(s, jnp.int32(1))
     assert float(s.done) == 1 and float(s.info['truncation']) == 0 and float(s.reward) == 1
     assert float(s.metrics['success']) == 1 and float(s.metrics['episode_length']) == 4
@@ -209,13 +222,20 @@ def test_gymnax_wrapper(auto_reset):
 
 # --- learning ----------------------------------------------------------------------------------
 def test_ppo_learns_choice():
-    cfg = PPOConfig(num_envs=64, num_steps=2, total_timesteps=64 * 2 * 60, update_epochs=4,
-                    num_minibatches=2, lr=1e-3, ent_coef=0.01)
+    cfg = PPOConfig(
+        num_envs=64,
+        num_steps=2,
+        total_timesteps=64 * 2 * 60,
+        update_epochs=4,
+        num_minibatches=2,
+        lr=1e-3,
+        ent_coef=0.01,
+    )
     ppo = make_ppo(cfg, ChoiceEnv(ChoiceConfig()), TinyGraphNet(2))
     runner, metrics = jax.jit(ppo.train)(jax.random.PRNGKey(0))
     sr = np.asarray(metrics['success'])
-    assert sr[:3].mean() < 0.7          # starts near chance
-    assert sr[-5:].mean() >= 0.95       # stochastic policy at the end of training
+    assert sr[:3].mean() < 0.7  # starts near chance
+    assert sr[-5:].mean() >= 0.95  # stochastic policy at the end of training
     ev = jax.jit(ppo.evaluate, static_argnums=(2, 3))(runner.params, jax.random.PRNGKey(1), 8)
     assert float(ev['success']) >= 0.95 and float(ev['episodes']) == 64 * 8
     assert int(runner.update) == cfg.num_updates
@@ -224,8 +244,16 @@ def test_ppo_learns_choice():
 def test_ppo_learns_gymnax_corridor_with_truncation():
     # 8-cell corridor, 12-step limit: a random walk mostly truncates; PPO must learn to walk right.
     env = GymnaxWrapper(Corridor(), CorridorParams(8), max_steps=12)
-    cfg = PPOConfig(num_envs=16, num_steps=16, total_timesteps=16 * 16 * 40, update_epochs=4,
-                    num_minibatches=4, lr=3e-3, gamma=0.95, ent_coef=0.01)
+    cfg = PPOConfig(
+        num_envs=16,
+        num_steps=16,
+        total_timesteps=16 * 16 * 40,
+        update_epochs=4,
+        num_minibatches=4,
+        lr=3e-3,
+        gamma=0.95,
+        ent_coef=0.01,
+    )
     _, metrics = jax.jit(make_train(cfg, env, MLP(2)))(jax.random.PRNGKey(0))
     sr = np.asarray(metrics['success'])
     assert sr[:2].mean() < 0.5 and np.nanmean(sr[-5:]) >= 0.95
@@ -234,14 +262,16 @@ def test_ppo_learns_gymnax_corridor_with_truncation():
 
 
 # --- determinism: vmapped seeds, chunks ---------------------------------------------------------
-SMALL = PPOConfig(num_envs=8, num_steps=2, total_timesteps=8 * 2 * 4, update_epochs=2,
-                  num_minibatches=2, lr=1e-3)
+SMALL = PPOConfig(
+    num_envs=8, num_steps=2, total_timesteps=8 * 2 * 4, update_epochs=2, num_minibatches=2, lr=1e-3
+)
 
 
 @pytest.fixture(scope='module')
 def small_ppo():
-    return make_ppo(SMALL, ChoiceEnv(ChoiceConfig(distractors=True, max_distractors=6)),
-                    TinyGraphNet(2, hidden=16))
+    return make_ppo(
+        SMALL, ChoiceEnv(ChoiceConfig(distractors=True, max_distractors=6)), TinyGraphNet(2, hidden=16)
+    )
 
 
 @pytest.fixture(scope='module')
@@ -261,8 +291,10 @@ def test_vmapped_seeds_match_single_runs(small_ppo, single_train):
         r, m = single(keys[i])
         assert _max_diff(jax.tree.map(lambda x: x[i], runners.params), r.params) < 1e-5
         np.testing.assert_allclose(np.asarray(metrics['success'][i]), np.asarray(m['success']))
-    assert _max_diff(jax.tree.map(lambda x: x[0], runners.params),
-                     jax.tree.map(lambda x: x[1], runners.params)) > 1e-3
+    assert (
+        _max_diff(jax.tree.map(lambda x: x[0], runners.params), jax.tree.map(lambda x: x[1], runners.params))
+        > 1e-3
+    )
     # Same key twice: bitwise identical.
     again = single(keys[0])[0]
     assert _max_diff(again.params, single(keys[0])[0].params) == 0.0
@@ -281,14 +313,16 @@ def test_chunked_updates_equal_one_shot(small_ppo, single_train):
     assert _max_diff(runner.params, full.params) < 1e-6
     assert _max_diff(runner.opt_state, full.opt_state) < 1e-6
     np.testing.assert_array_equal(np.asarray(runner.rng), np.asarray(full.rng))
-    np.testing.assert_allclose(np.concatenate([np.asarray(m['success']) for m in ms]),
-                               np.asarray(full_m['success']))
+    np.testing.assert_allclose(
+        np.concatenate([np.asarray(m['success']) for m in ms]), np.asarray(full_m['success'])
+    )
 
 
 # --- the project model (issue target) -------------------------------------------------------------
 # Small sizes of the main model (HGT + task-driven attention, no image branch) so CPU CI stays fast.
-SG_ATTN_SIZES = dict(use_rgbd=False, hidden=32, fusion_fc=(64, 64, 64), head_fc=(64, 64),
-                     goal_fc=(32, 32, 32))
+SG_ATTN_SIZES = dict(
+    use_rgbd=False, hidden=32, fusion_fc=(64, 64, 64), head_fc=(64, 64), goal_fc=(32, 32, 32)
+)
 
 
 def test_rgbd_sg_attn_learns_choice_with_distractors():
@@ -300,8 +334,15 @@ def test_rgbd_sg_attn_learns_choice_with_distractors():
     from hron_jax.models import ModelConfig, make_model
 
     model = make_model('rgbd_sg_attn', 2, ModelConfig(**SG_ATTN_SIZES))
-    cfg = PPOConfig(num_envs=64, num_steps=2, total_timesteps=64 * 2 * 70, update_epochs=4,
-                    num_minibatches=2, lr=5e-4, ent_coef=0.01)
+    cfg = PPOConfig(
+        num_envs=64,
+        num_steps=2,
+        total_timesteps=64 * 2 * 70,
+        update_epochs=4,
+        num_minibatches=2,
+        lr=5e-4,
+        ent_coef=0.01,
+    )
     ppo = make_ppo(cfg, ChoiceEnv(ChoiceConfig(distractors=True)), model)
     runner, metrics = jax.jit(ppo.train)(jax.random.PRNGKey(0))
     sr = np.asarray(metrics['success'])

@@ -1,6 +1,7 @@
 """hron_jax.rollout: unroll against a hand-written step loop (one env and a vmapped batch), record
 hooks, scripted actions, the episode-end index, the uniform reference policy, the choice task
 through the generic path."""
+
 from types import SimpleNamespace
 
 import jax
@@ -26,8 +27,9 @@ class Walk:
     def step(self, state, action):
         pos = jnp.maximum(state.inner + 2 * action - 1, 0)
         goal = pos >= 3
-        return next_state(state, pos.astype(jnp.float32)[None], pos, goal, goal,
-                          success=goal, max_steps=self.max_steps)
+        return next_state(
+            state, pos.astype(jnp.float32)[None], pos, goal, goal, success=goal, max_steps=self.max_steps
+        )
 
     def observation_example(self):
         return jnp.zeros(1, jnp.float32)
@@ -45,9 +47,16 @@ def hand_loop(step, state, key, num_steps):
         key, k = jax.random.split(key)
         action, extras = policy(state, k)
         nxt = step(state, action)
-        rows.append(dict(action=action, reward=nxt.reward, done=nxt.done,
-                         truncation=nxt.info['truncation'], seen=extras['seen'],
-                         success=nxt.metrics['success']))
+        rows.append(
+            dict(
+                action=action,
+                reward=nxt.reward,
+                done=nxt.done,
+                truncation=nxt.info['truncation'],
+                seen=extras['seen'],
+                success=nxt.metrics['success'],
+            )
+        )
         state = nxt
     return state, key, {k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}
 
@@ -94,8 +103,14 @@ def test_record_hook_and_field_clash():
     np.testing.assert_array_equal(np.asarray(traj['echo']), np.asarray(traj['seen']))
     np.testing.assert_array_equal(np.asarray(traj['before']), np.asarray(traj['seen']).astype(int))
     with pytest.raises(ValueError, match='reward'):
-        unroll(env.step, env.reset(None), policy, jax.random.PRNGKey(4), 2,
-               record=lambda s, a, e, n: {'reward': n.reward})
+        unroll(
+            env.step,
+            env.reset(None),
+            policy,
+            jax.random.PRNGKey(4),
+            2,
+            record=lambda s, a, e, n: {'reward': n.reward},
+        )
 
 
 def test_scripted_actions_override_the_policy():
@@ -103,8 +118,7 @@ def test_scripted_actions_override_the_policy():
     key = jax.random.PRNGKey(5)
     scripted = jnp.array([1, 1, -1, 0, -1, -1], jnp.int32)
     _, _, free = unroll(env.step, env.reset(None), policy, key, 6)
-    _, _, traj = jax.jit(lambda a: unroll(env.step, env.reset(None), policy, key, 6, actions=a))(
-        scripted)
+    _, _, traj = jax.jit(lambda a: unroll(env.step, env.reset(None), policy, key, 6, actions=a))(scripted)
     a, f = np.asarray(traj['action']), np.asarray(free['action'])
     np.testing.assert_array_equal(a[[0, 1, 3]], [1, 1, 0])
     # The policy ran with the same keys, so where not scripted it chose what it would have anyway.
@@ -115,10 +129,15 @@ def test_scripted_actions_override_the_policy():
 
 
 def test_episode_ends():
-    done = np.array([[0, 0, 1, 0, 1],     # first done at 2 (a later one does not count)
-                     [0, 0, 0, 0, 0],     # never done: the last step
-                     [1, 0, 0, 0, 0],
-                     [0, 0, 0, 0, 1]], np.float32)
+    done = np.array(
+        [
+            [0, 0, 1, 0, 1],  # first done at 2 (a later one does not count)
+            [0, 0, 0, 0, 0],  # never done: the last step
+            [1, 0, 0, 0, 0],
+            [0, 0, 0, 0, 1],
+        ],
+        np.float32,
+    )
     finished, end = episode_ends(done)
     np.testing.assert_array_equal(finished, [True, False, True, True])
     np.testing.assert_array_equal(end, [2, 4, 0, 4])

@@ -11,24 +11,25 @@ import mujoco
 import numpy as np
 import pytest
 
-from hron_jax.scenes import SceneError, load_scene, vocabulary as V
-from hron_jax.scenes import walkable
+from hron_jax.paths import REPO_ROOT
+from hron_jax.scenes import SceneError, load_scene, walkable
+from hron_jax.scenes import vocabulary as V
 from hron_jax.scenes.generator import generate_house
 from hron_jax.scenes.houses import SHIPPED
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = REPO_ROOT
 SCENES = os.path.join(ROOT, "scenes")
 SHIPPED_FILES = sorted(SHIPPED)
 HOUSES = [f for f in SHIPPED_FILES if f.startswith("house")]
 EPS = 1e-4  # ray start offset into a slot
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def scene(name):
     return load_scene(os.path.join(SCENES, name))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def sim(name):
     s = scene(name)
     d = mujoco.MjData(s.model)
@@ -60,8 +61,11 @@ def _grid_xy(c, h, n=3):
 def test_shipped_scene_loads(name):
     m = mujoco.MjModel.from_xml_path(os.path.join(SCENES, name))  # stock MuJoCo
     assert m.nmat >= 1
-    assert set(np.unique(m.geom_type)) <= {int(mujoco.mjtGeom.mjGEOM_BOX), int(mujoco.mjtGeom.mjGEOM_SPHERE),
-                                          int(mujoco.mjtGeom.mjGEOM_CAPSULE)}
+    assert set(np.unique(m.geom_type)) <= {
+        int(mujoco.mjtGeom.mjGEOM_BOX),
+        int(mujoco.mjtGeom.mjGEOM_SPHERE),
+        int(mujoco.mjtGeom.mjGEOM_CAPSULE),
+    }
     s = scene(name)
     assert s.model.ngeom == m.ngeom == len(s.geom_instance) == len(s.geom_class)
     assert s.num_nodes == s.num_rooms + s.num_furniture + s.num_objects
@@ -82,7 +86,7 @@ def test_shipped_files_are_up_to_date():
 def test_default_house_is_a_real_home():
     s = scene("house.xml")
     room_types = {V.ROOMS[i] for i in s.vocab_index[: s.num_rooms]}
-    fur_types = {V.FURNITURE[i] for i in s.vocab_index[s.num_rooms: s.num_rooms + s.num_furniture]}
+    fur_types = {V.FURNITURE[i] for i in s.vocab_index[s.num_rooms : s.num_rooms + s.num_furniture]}
     assert s.num_rooms >= 8 and len(room_types) >= 5
     assert s.num_furniture >= 30 and len(fur_types) >= 10
     assert s.room_area().sum() >= 120
@@ -135,9 +139,11 @@ def test_on_top_slots_rest_on_a_free_top_face(name):
         f, c, h = s.slot_furniture[k], s.slot_center[k], s.slot_half[k]
         bottom = c[2] - h[2]
         gc, gh = _furniture_geoms(s, f)
-        covers = ((np.abs(gc[:, 2] + gh[:, 2] - bottom) < 1e-6)
-                  & np.all(gc[:, :2] - gh[:, :2] <= c[:2] - h[:2] + 1e-6, 1)
-                  & np.all(gc[:, :2] + gh[:, :2] >= c[:2] + h[:2] - 1e-6, 1))
+        covers = (
+            (np.abs(gc[:, 2] + gh[:, 2] - bottom) < 1e-6)
+            & np.all(gc[:, :2] - gh[:, :2] <= c[:2] - h[:2] + 1e-6, 1)
+            & np.all(gc[:, :2] + gh[:, :2] >= c[:2] + h[:2] - 1e-6, 1)
+        )
         assert covers.any(), f"{s.slot_names[k]}: no top face of the furniture under the slot"
         for x, y in _grid_xy(c, h):
             dist, node = ray(name, (x, y, bottom + EPS), (0, 0, 1))
@@ -160,7 +166,9 @@ def test_inside_slots_are_enclosed_cavities(name):
         assert node == f and abs(dist - h[2]) < 1e-6, f"{s.slot_names[k]}: no support below"
         for x, y in _grid_xy(c, h):  # the whole slot: free up to the ceiling, supported below
             dist, node = ray(name, (x, y, c[2] - h[2] + EPS), (0, 0, 1))
-            assert node == f and abs(dist - (2 * h[2] - EPS)) < 1e-6, f"{s.slot_names[k]}: ceiling at ({x}, {y})"
+            assert node == f and abs(dist - (2 * h[2] - EPS)) < 1e-6, (
+                f"{s.slot_names[k]}: ceiling at ({x}, {y})"
+            )
             dist, node = ray(name, (x, y, c[2] - h[2] + EPS), (0, 0, -1))
             assert node == f and dist < 2 * EPS, f"{s.slot_names[k]}: not supported at ({x}, {y})"
 
@@ -173,7 +181,9 @@ def test_under_slots_are_covered_and_on_the_floor(name):
         assert abs(c[2] - h[2]) < 1e-6, f"{s.slot_names[k]}: bottom not on the floor"
         for x, y in _grid_xy(c, h):
             dist, node = ray(name, (x, y, EPS), (0, 0, 1))
-            assert node == f and abs(dist - (2 * h[2] - EPS)) < 1e-6, f"{s.slot_names[k]}: not covered at ({x}, {y})"
+            assert node == f and abs(dist - (2 * h[2] - EPS)) < 1e-6, (
+                f"{s.slot_names[k]}: not covered at ({x}, {y})"
+            )
 
 
 @pytest.mark.parametrize("name", SHIPPED_FILES)
@@ -203,8 +213,13 @@ def test_symmetric_room_is_mirrored():
     assert sorted(fur) == ["shelf", "shelf", "table", "table"]
     goals = {(V.OBJECTS[o], V.RELATIONS[r], V.FURNITURE[f]) for o, r, f, _ in s.goals}
     for obj in ("apple", "bowl", "gym_shoe"):
-        for rel, fur_cat in (("onTop", "table"), ("under", "table"), ("onTop", "shelf"), ("inside", "shelf"),
-                             ("under", "shelf")):
+        for rel, fur_cat in (
+            ("onTop", "table"),
+            ("under", "table"),
+            ("onTop", "shelf"),
+            ("inside", "shelf"),
+            ("under", "shelf"),
+        ):
             assert (obj, rel, fur_cat) in goals
 
 
@@ -228,8 +243,12 @@ def test_rooms_doors_and_slots_reachable(name):
     assert set(np.unique(rooms[reach])) == set(range(s.num_rooms)), "some room unreachable"
     if len(s.door_names):
         assert np.all(walkable.nearest_reachable_distance(reach, xs, ys, s.door_center[:, :2]) < 0.1)
-    corners = np.concatenate([s.slot_center[:, :2] + s.slot_half[:, :2] * np.array(sgn) * 0.95
-                              for sgn in ((1, 1), (1, -1), (-1, 1), (-1, -1))])
+    corners = np.concatenate(
+        [
+            s.slot_center[:, :2] + s.slot_half[:, :2] * np.array(sgn) * 0.95
+            for sgn in ((1, 1), (1, -1), (-1, 1), (-1, -1))
+        ]
+    )
     far = walkable.nearest_reachable_distance(reach, xs, ys, corners)
     names = [s.slot_names[i % s.num_slots] for i in np.nonzero(far >= 1.0)[0]]
     assert not names, f"slot corners beyond the 1 m success radius: {names}"
@@ -267,30 +286,58 @@ def _xml(body, material=True):
     return f"<mujoco>{asset}<worldbody>{body}</worldbody></mujoco>"
 
 
-@pytest.mark.parametrize("xml, words", [
-    ('<mujoco><worldbody><geom type="box" size="1 1 1" bogus="1"/></worldbody></mujoco>',
-     ["MuJoCo cannot load", "unrecognized attribute: 'bogus'"]),
-    (_xml('<geom type="box" size="1 1 0.1"/>'), ["without HRON annotations"]),
-    (_xml(_GOOD_ROOM + '<body name="furniture:table:0" pos="5 5 0"><geom type="box" size=".5 .5 .4"/></body>'),
-     ["furniture:table:0", "outside every room"]),
-    (_xml('<body name="room:garage:0"><geom type="box" pos="0 0 -0.025" size="2 2 0.025"/></body>'),
-     ["unknown room category 'garage'"]),
-    (_xml(_GOOD_ROOM + '<body name="furniture:piano:0"><geom type="box" size=".5 .5 .4"/></body>'),
-     ["unknown furniture category 'piano'"]),
-    (_xml(_GOOD_ROOM + '<body name="furniture:table:0"><geom type="box" size=".5 .5 .4"/>'
-          '<site name="furniture:table:0:beside:0" type="box" size=".1 .1 .1"/></body>'),
-     ["unknown relation 'beside'"]),
-    (_xml(_GOOD_ROOM + '<body name="furniture:table:0"><geom type="box" size=".5 .5 .4"/>'
-          '<site name="furniture:table:0:onTop:0" type="sphere" size=".1"/></body>'),
-     ["furniture:table:0:onTop:0", 'type="box"']),
-    (_xml(_GOOD_ROOM + '<body name="furniture:table:0"><geom type="cylinder" size=".5 .4"/></body>'),
-     ["unsupported type 'cylinder'"]),
-    (_xml(_GOOD_ROOM, material=False), ["no <material>"]),
-    (_xml(_GOOD_ROOM + '<site name="door:0" type="box" pos="0 0 1" size=".5 .3 1"/>'),
-     ["door:0", "touches 1 room"]),
-    (_xml(_GOOD_ROOM + '<body name="object:apple:0"><geom type="sphere" size=".05"/></body>'),
-     ["object:apple:0", "mocap"]),
-])
+@pytest.mark.parametrize(
+    "xml, words",
+    [
+        (
+            '<mujoco><worldbody><geom type="box" size="1 1 1" bogus="1"/></worldbody></mujoco>',
+            ["MuJoCo cannot load", "unrecognized attribute: 'bogus'"],
+        ),
+        (_xml('<geom type="box" size="1 1 0.1"/>'), ["without HRON annotations"]),
+        (
+            _xml(
+                _GOOD_ROOM
+                + '<body name="furniture:table:0" pos="5 5 0"><geom type="box" size=".5 .5 .4"/></body>'
+            ),
+            ["furniture:table:0", "outside every room"],
+        ),
+        (
+            _xml('<body name="room:garage:0"><geom type="box" pos="0 0 -0.025" size="2 2 0.025"/></body>'),
+            ["unknown room category 'garage'"],
+        ),
+        (
+            _xml(_GOOD_ROOM + '<body name="furniture:piano:0"><geom type="box" size=".5 .5 .4"/></body>'),
+            ["unknown furniture category 'piano'"],
+        ),
+        (
+            _xml(
+                _GOOD_ROOM + '<body name="furniture:table:0"><geom type="box" size=".5 .5 .4"/>'
+                '<site name="furniture:table:0:beside:0" type="box" size=".1 .1 .1"/></body>'
+            ),
+            ["unknown relation 'beside'"],
+        ),
+        (
+            _xml(
+                _GOOD_ROOM + '<body name="furniture:table:0"><geom type="box" size=".5 .5 .4"/>'
+                '<site name="furniture:table:0:onTop:0" type="sphere" size=".1"/></body>'
+            ),
+            ["furniture:table:0:onTop:0", 'type="box"'],
+        ),
+        (
+            _xml(_GOOD_ROOM + '<body name="furniture:table:0"><geom type="cylinder" size=".5 .4"/></body>'),
+            ["unsupported type 'cylinder'"],
+        ),
+        (_xml(_GOOD_ROOM, material=False), ["no <material>"]),
+        (
+            _xml(_GOOD_ROOM + '<site name="door:0" type="box" pos="0 0 1" size=".5 .3 1"/>'),
+            ["door:0", "touches 1 room"],
+        ),
+        (
+            _xml(_GOOD_ROOM + '<body name="object:apple:0"><geom type="sphere" size=".05"/></body>'),
+            ["object:apple:0", "mocap"],
+        ),
+    ],
+)
 def test_errors_name_file_and_problem(tmp_path, xml, words):
     p = tmp_path / "bad_scene.xml"
     p.write_text(xml)
@@ -312,21 +359,44 @@ def _truncated():
 
 # What a new user may pass instead of a scene: (file content, or None for a directory / no file; the
 # key phrase of the error). Each must be one SceneError line, never MuJoCo's raw parser text.
-@pytest.mark.parametrize("content, phrase", [
-    ("hello world\nthis is not xml\n", "not an XML file (it starts with 'hello world')"),
-    (b"\x89PNG\r\n\x1a\n\x00\x00", "not an XML file"),
-    ("", "the file is empty"),
-    ("  \n", "the file is empty"),
-    (_truncated(), "broken XML (line 6, column 7: unclosed token)"),
-    ("<mujoco><worldbody><geom type='box' size='1 1 1'></worldbody>", "broken XML (line 1, column 52: mismatched tag)"),
-    ("<html><body>hi</body></html>", "root element is <html>, not <mujoco>"),
-    (_xml('<geom type="box" size="1 1 0.1"/>', material=False), "a MuJoCo model without HRON annotations"),
-    (_xml('<body name="furniture:table:0"><geom type="box" size=".5 .5 .4"/></body>', material=False),
-     "no room annotations: a scene needs at least one body named 'room:<category>:<k>'"),
-    (None, "is a directory, not a scene file"),
-    ("missing", "file not found"),
-], ids=["text", "binary", "empty", "blank", "truncated", "mismatched", "html", "plain_mujoco", "no_rooms",
-        "directory", "missing"])
+@pytest.mark.parametrize(
+    "content, phrase",
+    [
+        ("hello world\nthis is not xml\n", "not an XML file (it starts with 'hello world')"),
+        (b"\x89PNG\r\n\x1a\n\x00\x00", "not an XML file"),
+        ("", "the file is empty"),
+        ("  \n", "the file is empty"),
+        (_truncated(), "broken XML (line 6, column 7: unclosed token)"),
+        (
+            "<mujoco><worldbody><geom type='box' size='1 1 1'></worldbody>",
+            "broken XML (line 1, column 52: mismatched tag)",
+        ),
+        ("<html><body>hi</body></html>", "root element is <html>, not <mujoco>"),
+        (
+            _xml('<geom type="box" size="1 1 0.1"/>', material=False),
+            "a MuJoCo model without HRON annotations",
+        ),
+        (
+            _xml('<body name="furniture:table:0"><geom type="box" size=".5 .5 .4"/></body>', material=False),
+            "no room annotations: a scene needs at least one body named 'room:<category>:<k>'",
+        ),
+        (None, "is a directory, not a scene file"),
+        ("missing", "file not found"),
+    ],
+    ids=[
+        "text",
+        "binary",
+        "empty",
+        "blank",
+        "truncated",
+        "mismatched",
+        "html",
+        "plain_mujoco",
+        "no_rooms",
+        "directory",
+        "missing",
+    ],
+)
 def test_bad_input_is_one_clear_scene_error(tmp_path, content, phrase):
     p = tmp_path / "scene.xml"
     if content is None:
@@ -351,11 +421,15 @@ def test_directory_error_names_its_scenes():
 
 def test_nested_and_rotated_bodies_use_world_frame(tmp_path):
     p = tmp_path / "nested.xml"
-    p.write_text(_xml(_GOOD_ROOM + '<body name="furniture:cabinet:0" pos="1 0.5 0" euler="0 0 90">'
-                      '<geom type="box" pos="0 0 0.4" size="0.3 0.2 0.4"/>'
-                      '<body name="drawer" pos="0.5 0 0"><geom type="box" pos="0 0 0.1" size="0.1 0.1 0.1"/>'
-                      '<site name="furniture:cabinet:0:onTop:0" type="box" pos="0 0 0.3" size="0.1 0.1 0.1"/>'
-                      '</body></body>'))
+    p.write_text(
+        _xml(
+            _GOOD_ROOM + '<body name="furniture:cabinet:0" pos="1 0.5 0" euler="0 0 90">'
+            '<geom type="box" pos="0 0 0.4" size="0.3 0.2 0.4"/>'
+            '<body name="drawer" pos="0.5 0 0"><geom type="box" pos="0 0 0.1" size="0.1 0.1 0.1"/>'
+            '<site name="furniture:cabinet:0:onTop:0" type="box" pos="0 0 0.3" size="0.1 0.1 0.1"/>'
+            '</body></body>'
+        )
+    )
     s = load_scene(p)
     f = s.index_of("furniture:cabinet:0")
     assert list(s.geom_instance) == [0, f, f]

@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 from hron_jax import sensors as SN
+from hron_jax.paths import REPO_ROOT
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = REPO_ROOT
 HOUSE = os.path.join(ROOT, "scenes", "house.xml")
 BOX_ROOM = os.path.join(ROOT, "tests", "scenes", "box_room.xml")
 
@@ -45,8 +46,11 @@ def _model_data(xml=None, path=None):
 
 
 def _render(cam, d, pose):
-    return cam.render_geoms(jnp.asarray(d.geom_xpos, jnp.float32),
-                            jnp.asarray(d.geom_xmat, jnp.float32), jnp.asarray(pose, jnp.float32))
+    return cam.render_geoms(
+        jnp.asarray(d.geom_xpos, jnp.float32),
+        jnp.asarray(d.geom_xmat, jnp.float32),
+        jnp.asarray(pose, jnp.float32),
+    )
 
 
 class RayRef:
@@ -71,8 +75,9 @@ class RayRef:
         """mju_rayGeom: distance along pixel's ray to geom g alone (-1 if missed)."""
         m, d = self.m, self.d
         v = self.dirs[pixel[0] * self.cfg.width + pixel[1]]
-        return mujoco.mju_rayGeom(d.geom_xpos[g], d.geom_xmat[g], m.geom_size[g], self.o, v,
-                                  int(m.geom_type[g]))
+        return mujoco.mju_rayGeom(
+            d.geom_xpos[g], d.geom_xmat[g], m.geom_size[g], self.o, v, int(m.geom_type[g])
+        )
 
     def check(self, out, tol=1e-4):
         """Depth equal to mj_ray's within tol everywhere; the same geom wherever mj_ray hit one,
@@ -87,6 +92,7 @@ class RayRef:
 
 
 # ------------------------------------------------------------------ analytic scenes
+
 
 @pytest.fixture(scope="module")
 def known():
@@ -103,8 +109,11 @@ def known():
 
 def _known_render(known, pose):
     m, d, cfg, cam, fn = known
-    return fn(jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32),
-              jnp.asarray(pose, jnp.float32))
+    return fn(
+        jnp.asarray(d.geom_xpos, jnp.float32),
+        jnp.asarray(d.geom_xmat, jnp.float32),
+        jnp.asarray(pose, jnp.float32),
+    )
 
 
 def test_wall_depth_is_analytic_zdepth(known):
@@ -151,9 +160,9 @@ def test_segmentation_ids_and_misses(known):
     mid = cfg.height // 2
     col = lambda y_world, z: int(np.argmin(np.abs(X - (-y_world / z))))  # noqa: E731
     inst, sem, geom = np.asarray(out.instance), np.asarray(out.semantic), np.asarray(out.geom)
-    assert (inst[mid, col(1.0, 2.0)], sem[mid, col(1.0, 2.0)]) == (7, 23)          # box
-    assert (inst[mid, col(-1.0, 1.7)], sem[mid, col(-1.0, 1.7)]) == (9, 40)        # sphere front
-    assert (inst[mid, col(-0.2, 1.9)], sem[mid, col(-0.2, 1.9)]) == (11, 41)       # capsule
+    assert (inst[mid, col(1.0, 2.0)], sem[mid, col(1.0, 2.0)]) == (7, 23)  # box
+    assert (inst[mid, col(-1.0, 1.7)], sem[mid, col(-1.0, 1.7)]) == (9, 40)  # sphere front
+    assert (inst[mid, col(-0.2, 1.9)], sem[mid, col(-0.2, 1.9)]) == (11, 41)  # capsule
     assert geom[mid, col(-1.0, 1.7)] == m.geom("ball").id
     # the invisible (alpha 0) box straight ahead is skipped, as mj_ray does: the wall is seen
     assert geom[mid, cfg.width // 2] == m.geom("wall").id
@@ -176,22 +185,30 @@ def test_max_depth_clips_to_miss(known):
 
 # ------------------------------------------------------------------ agreement with mj_ray
 
+
 def random_primitives_xml(seed=0, n_box=40, n_sphere=12, n_capsule=12, half=5.0):
     """Boxes, spheres and capsules with random sizes and random 3D orientations over a floor."""
     rng = np.random.default_rng(seed)
-    out = ['<mujoco><asset><material name="plain"/></asset><worldbody>',
-           f'<geom type="box" pos="0 0 -0.05" size="{half + 2} {half + 2} 0.05" rgba=".6 .6 .6 1"/>']
+    out = [
+        '<mujoco><asset><material name="plain"/></asset><worldbody>',
+        f'<geom type="box" pos="0 0 -0.05" size="{half + 2} {half + 2} 0.05" rgba=".6 .6 .6 1"/>',
+    ]
     for kind, n in (("box", n_box), ("sphere", n_sphere), ("capsule", n_capsule)):
         for _ in range(n):
             p = rng.uniform([-half, -half, 0.0], [half, half, 2.5])
             q = rng.normal(size=4)
             q /= np.linalg.norm(q)
-            size = {"box": rng.uniform(0.05, 0.8, 3), "sphere": rng.uniform(0.05, 0.5, 1),
-                    "capsule": rng.uniform([0.05, 0.05], [0.3, 0.6])}[kind]
+            size = {
+                "box": rng.uniform(0.05, 0.8, 3),
+                "sphere": rng.uniform(0.05, 0.5, 1),
+                "capsule": rng.uniform([0.05, 0.05], [0.3, 0.6]),
+            }[kind]
             rgba = " ".join(f"{c:.2f}" for c in rng.uniform(0.2, 1, 3)) + " 1"
-            out.append(f'<geom type="{kind}" pos="{p[0]:.4f} {p[1]:.4f} {p[2]:.4f}" '
-                       f'quat="{q[0]:.5f} {q[1]:.5f} {q[2]:.5f} {q[3]:.5f}" '
-                       f'size="{" ".join(f"{s:.4f}" for s in size)}" rgba="{rgba}"/>')
+            out.append(
+                f'<geom type="{kind}" pos="{p[0]:.4f} {p[1]:.4f} {p[2]:.4f}" '
+                f'quat="{q[0]:.5f} {q[1]:.5f} {q[2]:.5f} {q[3]:.5f}" '
+                f'size="{" ".join(f"{s:.4f}" for s in size)}" rgba="{rgba}"/>'
+            )
     out.append("</worldbody></mujoco>")
     return "\n".join(out)
 
@@ -206,16 +223,28 @@ def test_agrees_with_mj_ray_random_primitives(primitives, pitch):
     """Culling active (k_box < 40 boxes): where the certificate says exact, depth and geom equal
     mj_ray's; across poses at least most frames are certified."""
     m, d = primitives
-    cfg = SN.CameraConfig(width=24, height=20, vfov_deg=90.0, max_depth=12.0, mount_height=1.1,
-                          pitch_deg=pitch, k_box=16, k_sphere=6, k_capsule=6)
+    cfg = SN.CameraConfig(
+        width=24,
+        height=20,
+        vfov_deg=90.0,
+        max_depth=12.0,
+        mount_height=1.1,
+        pitch_deg=pitch,
+        k_box=16,
+        k_sphere=6,
+        k_capsule=6,
+    )
     cam = SN.Camera(m, cfg)
     fn = jax.jit(cam.render_geoms)
     rng = np.random.default_rng(1)
     certified = 0
     for _ in range(6):
         pose = [*rng.uniform(-4, 4, 2), rng.uniform(-math.pi, math.pi)]
-        out = fn(jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32),
-                 jnp.asarray(pose, jnp.float32))
+        out = fn(
+            jnp.asarray(d.geom_xpos, jnp.float32),
+            jnp.asarray(d.geom_xmat, jnp.float32),
+            jnp.asarray(pose, jnp.float32),
+        )
         ref = RayRef(m, d, cfg, pose)
         if int(out.uncertain) == 0:
             certified += 1
@@ -230,16 +259,20 @@ def test_agrees_with_mj_ray_random_primitives(primitives, pitch):
 def test_certificate_bounds_errors_when_k_too_small(primitives):
     """With K = 2 culling drops needed geoms: every wrong ray is counted in `uncertain`."""
     m, d = primitives
-    cfg = SN.CameraConfig(width=16, height=16, vfov_deg=90.0, max_depth=12.0, k_box=2,
-                          k_sphere=1, k_capsule=1)
+    cfg = SN.CameraConfig(
+        width=16, height=16, vfov_deg=90.0, max_depth=12.0, k_box=2, k_sphere=1, k_capsule=1
+    )
     cam = SN.Camera(m, cfg)
     fn = jax.jit(cam.render_geoms)
     rng = np.random.default_rng(2)
     total_wrong = 0
     for _ in range(4):
         pose = [*rng.uniform(-4, 4, 2), rng.uniform(-math.pi, math.pi)]
-        out = fn(jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32),
-                 jnp.asarray(pose, jnp.float32))
+        out = fn(
+            jnp.asarray(d.geom_xpos, jnp.float32),
+            jnp.asarray(d.geom_xmat, jnp.float32),
+            jnp.asarray(pose, jnp.float32),
+        )
         ref_t = RayRef(m, d, cfg, pose).t
         ref = np.where(ref_t <= cfg.max_depth, ref_t, cfg.max_depth)
         wrong = int((np.abs(np.asarray(out.depth) - ref) > 1e-4).sum())
@@ -251,6 +284,7 @@ def test_certificate_bounds_errors_when_k_too_small(primitives):
 def test_kernels_agree_with_mjx_primitives():
     """The three exact kernels against mjx.ray's per-geom functions on random local rays."""
     from mujoco.mjx._src import ray as mjx_ray
+
     rng = np.random.default_rng(3)
     p = rng.normal(size=(500, 3)).astype(np.float32) * 2
     v = (-p + rng.normal(size=(500, 3)) * 1.5).astype(np.float32)  # mostly towards the geom
@@ -268,6 +302,7 @@ def test_kernels_agree_with_mjx_primitives():
 def test_mjx_backend_matches_kernel(primitives):
     m, d = primitives
     from mujoco import mjx
+
     cfg = SN.CameraConfig(width=12, height=10, vfov_deg=90.0, max_depth=12.0)
     mx = mjx.put_model(m)
     dx = mjx.put_data(m, d)
@@ -283,8 +318,7 @@ def test_vmap_equals_single_frames(primitives):
     m, d = primitives
     cfg = SN.CameraConfig(width=16, height=12, vfov_deg=90.0, max_depth=12.0)
     cam = SN.Camera(m, cfg)
-    poses = jnp.asarray([[0.0, 0.0, 0.0], [1.0, 2.0, 1.0], [-3.0, 1.0, -2.0], [2.0, -2.0, 3.0]],
-                        jnp.float32)
+    poses = jnp.asarray([[0.0, 0.0, 0.0], [1.0, 2.0, 1.0], [-3.0, 1.0, -2.0], [2.0, -2.0, 3.0]], jnp.float32)
     xp = jnp.broadcast_to(jnp.asarray(d.geom_xpos, jnp.float32), (4, m.ngeom, 3))
     xm = jnp.broadcast_to(jnp.asarray(d.geom_xmat, jnp.float32), (4, m.ngeom, 9))
     batch = jax.jit(jax.vmap(cam.render_geoms))(xp, xm, poses)
@@ -296,10 +330,12 @@ def test_vmap_equals_single_frames(primitives):
 
 # ------------------------------------------------------------------ house + simulator integration
 
+
 @pytest.mark.skipif(not os.path.exists(HOUSE), reason="scenes/house.xml not present")
 def test_house_views_exact_with_default_k():
     """Default CameraConfig on the house: free-space poses are certified and equal mj_ray."""
     from hron_jax.scenes import load_scene
+
     scene = load_scene(HOUSE)
     m, d = _model_data(path=HOUSE)
     cfg = SN.CameraConfig()
@@ -312,8 +348,7 @@ def test_house_views_exact_with_default_k():
         for yaw in (0.3, 1.9, -1.2, 3.0):
             poses.append([(f[0] + f[2]) / 2, (f[1] + f[3]) / 2, yaw])
     poses = np.asarray(poses, np.float32)
-    out = fn(jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32),
-             jnp.asarray(poses))
+    out = fn(jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32), jnp.asarray(poses))
     assert np.all(np.asarray(out.uncertain) == 0)
     for i in range(0, len(poses), 3):
         one = jax.tree_util.tree_map(lambda x: x[i], out)
@@ -329,13 +364,14 @@ def test_simulator_integration_excludes_agent():
     it; objects placed by mocap show with their node index; equals mj_ray with bodyexclude."""
     from hron_jax.scenes import load_scene
     from hron_jax.sim import Simulator
+
     scene = load_scene(BOX_ROOM)
     sim = Simulator.from_file(BOX_ROOM)
     cfg = SN.CameraConfig(width=32, height=32, vfov_deg=60.0)
     cam = SN.Camera.for_simulator(sim, cfg, scene=scene)
     apple = scene.index_of("object:apple:0")
     mpos = np.array(sim.default_mocap_pos, np.float32)
-    mpos[scene.mocap_id[apple]] = [-2.0, 0.0, 0.795]      # on the table
+    mpos[scene.mocap_id[apple]] = [-2.0, 0.0, 0.795]  # on the table
     pose = jnp.asarray([-1.0, 0.0, math.pi], jnp.float32)  # 1 m from the apple, facing the table
     d = jax.jit(sim.init)(pose, jnp.asarray(mpos), jnp.asarray(np.tile([1.0, 0, 0, 0], (2, 1))))
     out = cam.render(d, pose)

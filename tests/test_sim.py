@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from hron_jax import sim as S
+from hron_jax.paths import REPO_ROOT
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = REPO_ROOT
 HOUSE = os.path.join(ROOT, "scenes", "house.xml")
 
 # Floor (x, y in [-6, 6]); an axis-aligned wall whose face is at x = 3; a wall at 45 deg through
@@ -52,8 +53,12 @@ def sim():
 
 @pytest.fixture(scope="module")
 def fns(sim):
-    return dict(init=jax.jit(sim.init), step=jax.jit(sim.step),
-                vinit=jax.jit(jax.vmap(sim.init)), vstep=jax.jit(jax.vmap(sim.step)))
+    return dict(
+        init=jax.jit(sim.init),
+        step=jax.jit(sim.step),
+        vinit=jax.jit(jax.vmap(sim.init)),
+        vstep=jax.jit(jax.vmap(sim.step)),
+    )
 
 
 def _pose(fns, sim, pose):
@@ -125,10 +130,10 @@ def test_wall_stops_agent(sim, fns):
         d = fns["step"](d, jnp.int32(S.FORWARD))
         p = np.asarray(sim.agent_pose(d))
         xs.append(p[0])
-        assert p[0] <= WALL_X - R + 0.01, xs          # penetration <= 1 cm at every step end
+        assert p[0] <= WALL_X - R + 0.01, xs  # penetration <= 1 cm at every step end
         assert abs(p[1]) < 1e-4 and abs(p[2]) < 1e-4  # head-on: no sideways drift or spin
         assert np.all(np.asarray(d.qvel) == 0.0)
-    assert xs[-1] >= WALL_X - R - 0.04, xs             # it did reach the wall (within margin)
+    assert xs[-1] >= WALL_X - R - 0.04, xs  # it did reach the wall (within margin)
     # backing away works normally after the contact
     d = fns["step"](d, jnp.int32(S.BACKWARD))
     assert abs(float(sim.agent_pose(d)[0]) - (xs[-1] - 0.2)) < 1e-3
@@ -149,27 +154,33 @@ def test_wall_all_start_offsets(sim, fns):
 
 def test_oblique_wall_slides_never_crosses(sim, fns):
     """Driving at the 45-degree wall: the agent slides along it, its centre stays >= R - 1 cm away."""
-    n = np.array([1.0, 1.0]) / math.sqrt(2)       # wall normal (the wall's local x axis)
+    n = np.array([1.0, 1.0]) / math.sqrt(2)  # wall normal (the wall's local x axis)
     c = np.array([-3.0, -3.0])
     start = c + 1.0 * n
     d = _pose(fns, sim, [start[0], start[1], math.atan2(-n[1], -n[0]) + math.radians(20)])
     for _ in range(15):
         d = fns["step"](d, jnp.int32(S.FORWARD))
         p = np.asarray(sim.agent_pose(d))
-        dist = (p[:2] - c) @ n - 0.05             # from the wall face to the agent's axis
+        dist = (p[:2] - c) @ n - 0.05  # from the wall face to the agent's axis
         assert dist >= R - 0.01, (p, dist)
     along = (p[:2] - start) @ np.array([-n[1], n[0]])
-    assert abs(along) > 0.3                       # it slid along the wall instead of sticking
+    assert abs(along) > 0.3  # it slid along the wall instead of sticking
 
 
 def test_vmap_equals_single_runs(sim, fns):
     """A batch of NB envs (random poses, some running into walls) equals NB single runs."""
     rng = np.random.default_rng(0)
-    poses = np.concatenate([np.array([[0.0, 0.0, 0.0], [2.5, 0.5, 0.1], [-1.0, 2.0, 2.0]]),
-                            np.stack([rng.uniform(-2.5, 2.7, NB - 3), rng.uniform(-2.5, 2.5, NB - 3),
-                                      rng.uniform(-3, 3, NB - 3)], -1)])
+    poses = np.concatenate(
+        [
+            np.array([[0.0, 0.0, 0.0], [2.5, 0.5, 0.1], [-1.0, 2.0, 2.0]]),
+            np.stack(
+                [rng.uniform(-2.5, 2.7, NB - 3), rng.uniform(-2.5, 2.5, NB - 3), rng.uniform(-3, 3, NB - 3)],
+                -1,
+            ),
+        ]
+    )
     acts = rng.integers(0, 5, size=(NB, 6))
-    acts[1] = [0, 0, 0, 0, 3, 0]                  # env 1 drives into the east wall
+    acts[1] = [0, 0, 0, 0, 3, 0]  # env 1 drives into the east wall
     db = fns["vinit"](jnp.asarray(poses, jnp.float32))
     for t in range(acts.shape[1]):
         db = fns["vstep"](db, jnp.asarray(acts[:, t], jnp.int32))
@@ -202,6 +213,7 @@ def test_contact_filter(sim):
     assert set(walls) <= set(sim.blockers)
     # MJX sees exactly agent x blockers as candidate pairs; the broadphase keeps K of them
     from mujoco.mjx._src import collision_driver
+
     pairs = list(collision_driver.geom_pairs(m))
     assert len(pairs) == len(sim.blockers)
     assert all(agent_geom in p[:2] for p in pairs)
@@ -215,7 +227,7 @@ def test_auto_max_geom_pairs_keeps_every_contact():
     at random agent positions across the house, every blocker in contact ranks within K."""
     sim = S.Simulator.from_file(HOUSE)
     m = sim.mj_model
-    assert sim.max_geom_pairs < len(sim.blockers) // 4   # culling actually removes pairs
+    assert sim.max_geom_pairs < len(sim.blockers) // 4  # culling actually removes pairs
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
     agent_geom = m.geom(S.AGENT_GEOM).id
@@ -230,8 +242,11 @@ def test_auto_max_geom_pairs_keeps_every_contact():
         if not geoms:
             continue
         touching += 1
-        metric = (np.linalg.norm(d.geom_xpos[sim.blockers] - d.geom_xpos[agent_geom], axis=1)
-                  - m.geom_rbound[sim.blockers] - m.geom_rbound[agent_geom])
+        metric = (
+            np.linalg.norm(d.geom_xpos[sim.blockers] - d.geom_xpos[agent_geom], axis=1)
+            - m.geom_rbound[sim.blockers]
+            - m.geom_rbound[agent_geom]
+        )
         for g in geoms:
             mg = metric[list(sim.blockers).index(g)]
             assert (metric <= mg).sum() <= sim.max_geom_pairs, (g, d.qpos[sim.qpos_adr])

@@ -7,6 +7,7 @@ caches the program per program-relevant config, so every such run shares it), tr
 subprocesses on 2 forced CPU devices with 2 vmapped seeds (they share a persistent XLA cache, so
 only the first one compiles), and eval.py.
 """
+
 import json
 import os
 import shutil
@@ -21,18 +22,37 @@ import numpy as np
 import pytest
 
 from hron_jax import evaluation
-from hron_jax.cli import config_from_args, main as train_main, tune_malloc
+from hron_jax.cli import config_from_args, tune_malloc
+from hron_jax.cli import main as train_main
 from hron_jax.errors import NonFiniteError
+from hron_jax.paths import REPO_ROOT
 from hron_jax.run_config import TrainConfig, make_config
 from hron_jax.run_dir import load_config, read_metrics, restore_runner
 from hron_jax.training import Trainer, programs
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY_MODEL = ['hidden=16', 'heads=1', 'gnn_layers=1', 'goal_fc=16,16,16', 'fusion_fc=32,32,32',
-              'head_fc=32,32']
-BATCH = 8 * 2     # num_envs x num_steps
-TINY = dict(task='choice', model='rgbd_sg_attn', num_envs=8, num_steps=2, epochs=2, minibatches=2,
-            lr=1e-3, log_every=2, checkpoint_every=4, model_option=TINY_MODEL, fast_compile=True)
+ROOT = Path(REPO_ROOT)
+TINY_MODEL = [
+    'hidden=16',
+    'heads=1',
+    'gnn_layers=1',
+    'goal_fc=16,16,16',
+    'fusion_fc=32,32,32',
+    'head_fc=32,32',
+]
+BATCH = 8 * 2  # num_envs x num_steps
+TINY = dict(
+    task='choice',
+    model='rgbd_sg_attn',
+    num_envs=8,
+    num_steps=2,
+    epochs=2,
+    minibatches=2,
+    lr=1e-3,
+    log_every=2,
+    checkpoint_every=4,
+    model_option=TINY_MODEL,
+    fast_compile=True,
+)
 
 
 def tiny_config(updates: int, **kw):
@@ -40,9 +60,28 @@ def tiny_config(updates: int, **kw):
 
 
 def tiny_argv(updates: int) -> list[str]:
-    argv = ['--task', 'choice', '--num-envs', '8', '--num-steps', '2', '--epochs', '2',
-            '--minibatches', '2', '--lr', '1e-3', '--log-every', '2', '--checkpoint-every', '4',
-            '--total-steps', str(BATCH * updates), '--no-progress', '--fast-compile']
+    argv = [
+        '--task',
+        'choice',
+        '--num-envs',
+        '8',
+        '--num-steps',
+        '2',
+        '--epochs',
+        '2',
+        '--minibatches',
+        '2',
+        '--lr',
+        '1e-3',
+        '--log-every',
+        '2',
+        '--checkpoint-every',
+        '4',
+        '--total-steps',
+        str(BATCH * updates),
+        '--no-progress',
+        '--fast-compile',
+    ]
     for opt in TINY_MODEL:
         argv += ['--model-option', opt]
     return argv
@@ -69,8 +108,11 @@ def assert_trees_equal(a, b):
 
 
 def max_diff(a, b):
-    return max(float(np.max(np.abs(x.astype(np.float64) - y.astype(np.float64))))
-               for x, y in zip(leaves(a), leaves(b)) if x.dtype.kind == 'f')
+    return max(
+        float(np.max(np.abs(x.astype(np.float64) - y.astype(np.float64))))
+        for x, y in zip(leaves(a), leaves(b))
+        if x.dtype.kind == 'f'
+    )
 
 
 @pytest.fixture(scope='module')
@@ -79,13 +121,19 @@ def xla_cache(tmp_path_factory):
 
 
 def run_cli(script, argv, xla_cache, devices=1, **kw):
-    env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache,
-               PYTHONPATH=str(ROOT))
+    env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache, PYTHONPATH=str(ROOT))
     env.pop('XLA_FLAGS', None)
     if devices > 1:
         env['XLA_FLAGS'] = f'--xla_force_host_platform_device_count={devices}'
-    return subprocess.run([sys.executable, str(ROOT / script)] + argv, env=env, cwd=ROOT,
-                          capture_output=True, text=True, timeout=240, **kw)
+    return subprocess.run(
+        [sys.executable, str(ROOT / script)] + argv,
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        **kw,
+    )
 
 
 @pytest.fixture(scope='module')
@@ -110,7 +158,7 @@ def test_resume_after_interruption_is_exact(reference, tmp_path):
 
     resumed = train(load_config(run_dir), run_dir, resume=True)
     assert int(resumed.update[0]) == 8
-    assert_trees_equal(resumed.params, ref.params)          # bitwise
+    assert_trees_equal(resumed.params, ref.params)  # bitwise
     assert_trees_equal(resumed.opt_state, ref.opt_state)
     assert_trees_equal(resumed.env_state, ref.env_state)
     np.testing.assert_array_equal(resumed.rng, ref.rng)
@@ -128,8 +176,7 @@ def test_resume_config_mismatch(reference, tmp_path, capsys):
     _, ref_dir, _ = reference
     run_dir = tmp_path / 'copy'
     shutil.copytree(ref_dir, run_dir)
-    rc = train_main(['--resume', str(run_dir), '--lr', '0.5', '--num-envs', '16',
-                 '--compile-cache', 'none'])
+    rc = train_main(['--resume', str(run_dir), '--lr', '0.5', '--num-envs', '16', '--compile-cache', 'none'])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and 'ppo.lr' in err and 'ppo.num_envs' in err and 'Traceback' not in err
     # An existing run is not overwritten without --resume.
@@ -210,8 +257,7 @@ def sharded_two_seeds(tmp_path_factory, xla_cache):
     (One compile covers both checks below; their errors do not add up beyond 1e-6: measured
     3e-7 for vmapped vs single, 1.5e-7 for sharded vs unsharded.)"""
     run_dir = tmp_path_factory.mktemp('runs') / 'sharded_two_seeds'
-    r = run_cli('train.py', tiny_argv(8) + ['--num-seeds', '2', '--out', str(run_dir)], xla_cache,
-                devices=2)
+    r = run_cli('train.py', tiny_argv(8) + ['--num-seeds', '2', '--out', str(run_dir)], xla_cache, devices=2)
     assert r.returncode == 0, r.stderr[-2000:]
     return run_dir
 
@@ -228,9 +274,10 @@ def test_vmapped_seeds_differ_and_match_single_runs(reference, seed1, sharded_tw
     assert config.num_seeds == 2 and config.seed == 0
     two, _ = restore_runner(sharded_two_seeds, programs(config).abstract)
     for i, single in enumerate((ref, seed1)):
-        assert max_diff(jax.tree.map(lambda x: x[i:i + 1], two.params), single.params) < 1e-6
-    assert max_diff(jax.tree.map(lambda x: x[:1], two.params),
-                    jax.tree.map(lambda x: x[1:], two.params)) > 1e-3
+        assert max_diff(jax.tree.map(lambda x: x[i : i + 1], two.params), single.params) < 1e-6
+    assert (
+        max_diff(jax.tree.map(lambda x: x[:1], two.params), jax.tree.map(lambda x: x[1:], two.params)) > 1e-3
+    )
     row = read_metrics(sharded_two_seeds)[-1]
     assert row['seeds'] == 2 and len(row['per_seed']['success']) == 2
     assert row['success'] == pytest.approx(np.mean(row['per_seed']['success']))
@@ -251,19 +298,29 @@ def test_sharded_run_matches_unsharded(reference, sharded_two_seeds):
 # --- signals -----------------------------------------------------------------------------------
 def test_sigterm_checkpoints_and_resume_continues(tmp_path, xla_cache, sharded_two_seeds):
     # The program of `sharded_two_seeds` (2 devices, 2 seeds) again: it comes from the XLA cache.
-    updates = 150   # ~2 s of training on an idle machine: time to send the signal mid-run
+    updates = 150  # ~2 s of training on an idle machine: time to send the signal mid-run
     run_dir = tmp_path / 'sig'
     argv = tiny_argv(updates) + ['--num-seeds', '2', '--checkpoint-every', '1000']  # ckpt: init, exit
-    env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache,
-               PYTHONPATH=str(ROOT), XLA_FLAGS='--xla_force_host_platform_device_count=2')
+    env = dict(
+        os.environ,
+        JAX_PLATFORMS='cpu',
+        JAX_COMPILATION_CACHE_DIR=xla_cache,
+        PYTHONPATH=str(ROOT),
+        XLA_FLAGS='--xla_force_host_platform_device_count=2',
+    )
     popen = lambda out: subprocess.Popen(
-        [sys.executable, str(ROOT / 'train.py')] + argv + ['--out', str(out)], env=env, cwd=ROOT,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        [sys.executable, str(ROOT / 'train.py')] + argv + ['--out', str(out)],
+        env=env,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     proc = popen(run_dir)
-    full = popen(tmp_path / 'uninterrupted')   # the reference, meanwhile
+    full = popen(tmp_path / 'uninterrupted')  # the reference, meanwhile
     deadline = time.time() + 200
     while time.time() < deadline and proc.poll() is None:
-        if len(read_metrics(run_dir)) >= 1:    # training has started
+        if len(read_metrics(run_dir)) >= 1:  # training has started
             break
         time.sleep(0.02)
     assert proc.poll() is None, proc.communicate()[1][-2000:]
@@ -273,7 +330,7 @@ def test_sigterm_checkpoints_and_resume_continues(tmp_path, xla_cache, sharded_t
     assert 'Traceback' not in err and '--resume' in err
     steps = sorted(int(p.name) for p in (run_dir / 'checkpoints').iterdir())
     stopped = steps[-1]
-    assert steps[0] == 0 and 0 < stopped < updates and stopped % 2 == 0   # at a chunk boundary
+    assert steps[0] == 0 and 0 < stopped < updates and stopped % 2 == 0  # at a chunk boundary
     assert read_metrics(run_dir)[-1]['update'] == stopped
 
     r = run_cli('train.py', ['--resume', str(run_dir), '--no-progress'], xla_cache, devices=2)
@@ -296,19 +353,34 @@ BAD_CLI = [
     (['--task', 'choice', '--model', 'resnet'], 1, "invalid choice: 'resnet'"),
     (['--task', 'directed', '--scene', 'scenes/no_such_scene.xml'], 1, 'scene file not found'),
     (['--task', 'choice', '--num-envs', '7'], 2, 'not divisible by the 2 local devices'),
-    (['--task', 'choice', '--num-envs', '6', '--num-steps', '1', '--minibatches', '4'], 1,
-     '--minibatches: must divide the rollout'),
+    (
+        ['--task', 'choice', '--num-envs', '6', '--num-steps', '1', '--minibatches', '4'],
+        1,
+        '--minibatches: must divide the rollout',
+    ),
 ]
 
 
 def test_bad_cli_input_is_one_clear_line(tmp_path, xla_cache):
     procs = []
-    for i, (argv, devices, _) in enumerate(BAD_CLI):     # all at once: each is mostly imports
-        env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache,
-                   PYTHONPATH=str(ROOT), XLA_FLAGS=f'--xla_force_host_platform_device_count={devices}')
-        procs.append(subprocess.Popen(
-            [sys.executable, str(ROOT / 'train.py')] + argv + ['--out', str(tmp_path / f'never{i}')],
-            env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    for i, (argv, devices, _) in enumerate(BAD_CLI):  # all at once: each is mostly imports
+        env = dict(
+            os.environ,
+            JAX_PLATFORMS='cpu',
+            JAX_COMPILATION_CACHE_DIR=xla_cache,
+            PYTHONPATH=str(ROOT),
+            XLA_FLAGS=f'--xla_force_host_platform_device_count={devices}',
+        )
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, str(ROOT / 'train.py')] + argv + ['--out', str(tmp_path / f'never{i}')],
+                env=env,
+                cwd=ROOT,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+        )
     for i, ((argv, _, needle), proc) in enumerate(zip(BAD_CLI, procs)):
         _, err = proc.communicate(timeout=120)
         err = err.strip()
@@ -321,20 +393,37 @@ def test_bad_cli_input_is_one_clear_line(tmp_path, xla_cache):
 # Every option with values a user could get wrong: zero, negative, wrong type, out of range,
 # cross-field (minibatches that do not divide the rollout, heads that do not divide hidden).
 BAD_VALUES = {
-    '--num-envs': ['0', '-5', 'abc', '2.5'], '--total-steps': ['0', '-1', '10', 'x'],
-    '--seed': ['-1', 'abc'], '--num-seeds': ['0', '-2'], '--log-every': ['0'],
-    '--checkpoint-every': ['0', '-1'], '--keep-checkpoints': ['0'], '--num-steps': ['0', '-3'],
-    '--epochs': ['0'], '--minibatches': ['0', '-1', '3'], '--lr': ['0', '-1', 'nan', 'inf', 'abc'],
-    '--gamma': ['-0.1', '1.5', 'nan'], '--gae-lambda': ['2'], '--clip-eps': ['0', '-0.2'],
-    '--ent-coef': ['-0.01'], '--vf-coef': ['-1'], '--max-grad-norm': ['0'],
-    '--task': ['navigate'], '--model': ['resnet'],
-    '--env-option': ['max_distractors=-1', 'image_size=0', 'nonsense=1', 'noequals',
-                     'max_distractors=abc'],
+    '--num-envs': ['0', '-5', 'abc', '2.5'],
+    '--total-steps': ['0', '-1', '10', 'x'],
+    '--seed': ['-1', 'abc'],
+    '--num-seeds': ['0', '-2'],
+    '--log-every': ['0'],
+    '--checkpoint-every': ['0', '-1'],
+    '--keep-checkpoints': ['0'],
+    '--num-steps': ['0', '-3'],
+    '--epochs': ['0'],
+    '--minibatches': ['0', '-1', '3'],
+    '--lr': ['0', '-1', 'nan', 'inf', 'abc'],
+    '--gamma': ['-0.1', '1.5', 'nan'],
+    '--gae-lambda': ['2'],
+    '--clip-eps': ['0', '-0.2'],
+    '--ent-coef': ['-0.01'],
+    '--vf-coef': ['-1'],
+    '--max-grad-norm': ['0'],
+    '--task': ['navigate'],
+    '--model': ['resnet'],
+    '--env-option': ['max_distractors=-1', 'image_size=0', 'nonsense=1', 'noequals', 'max_distractors=abc'],
     '--model-option': ['hidden=0', 'heads=3', 'cnn_fc=16,0,16', 'gnn=gcn', 'hidden=x'],
 }
-NAV_BAD_VALUES = {   # fields of the navigation env, dotted into its sub-configs
-    '--env-option': ['max_steps=0', 'camera.width=0', 'success_distance=-1', 'camera.vfov_deg=190',
-                     'camera.nope=1', 'num_distractors=-2'],
+NAV_BAD_VALUES = {  # fields of the navigation env, dotted into its sub-configs
+    '--env-option': [
+        'max_steps=0',
+        'camera.width=0',
+        'success_distance=-1',
+        'camera.vfov_deg=190',
+        'camera.nope=1',
+        'num_distractors=-2',
+    ],
 }
 
 
@@ -348,28 +437,48 @@ def bad_cases():
 @pytest.mark.parametrize('task,option,value', list(bad_cases()))
 def test_every_option_rejects_bad_values_in_one_line(task, option, value, tmp_path, capsys):
     argv = ['--task', task] if option != '--task' else []
-    rc = train_main(argv + [option, value, '--out', str(tmp_path / 'never'), '--compile-cache',
-                            'none', '--no-progress'])
+    rc = train_main(
+        argv + [option, value, '--out', str(tmp_path / 'never'), '--compile-cache', 'none', '--no-progress']
+    )
     err = capsys.readouterr().err.strip()
     assert rc == 2, (option, value, err)
     assert len(err.splitlines()) == 1 and err.startswith('train.py: error:'), err
     name = value.split('=')[0] if option.endswith('-option') and '=' in value else ''
-    assert option in err and name in err, err     # it names what to fix
+    assert option in err and name in err, err  # it names what to fix
     assert not (tmp_path / 'never').exists()
 
 
 def test_config_json_of_the_flat_format_is_upgraded():
     """config.json files written before the typed tree (flat env_options / model_options) load
     as the same config the new CLI builds."""
-    old = {'task': 'exploratory', 'model': 'rgbd_sg', 'scene': 'scenes/house.xml', 'distractors': True,
-           'premap': True, 'env_options': [['image_size', 8], ['max_steps', 40]],
-           'model_options': [['hidden', 16], ['cnn_fc', [16, 16, 16]]],
-           'ppo': dict(vars(make_config('exploratory').ppo), seed=3, num_envs=4), 'seed': 3,
-           'num_seeds': 1, 'log_every': 1, 'checkpoint_every': 20, 'keep_checkpoints': 3,
-           'fast_compile': False}
-    new = config_from_args(dict(task='exploratory', model='rgbd_sg', distractors=True, premap=True,
-                                num_envs=4, seed=3, env_option=['image_size=8', 'max_steps=40'],
-                                model_option=['hidden=16', 'cnn_fc=16,16,16']))
+    old = {
+        'task': 'exploratory',
+        'model': 'rgbd_sg',
+        'scene': 'scenes/house.xml',
+        'distractors': True,
+        'premap': True,
+        'env_options': [['image_size', 8], ['max_steps', 40]],
+        'model_options': [['hidden', 16], ['cnn_fc', [16, 16, 16]]],
+        'ppo': dict(vars(make_config('exploratory').ppo), seed=3, num_envs=4),
+        'seed': 3,
+        'num_seeds': 1,
+        'log_every': 1,
+        'checkpoint_every': 20,
+        'keep_checkpoints': 3,
+        'fast_compile': False,
+    }
+    new = config_from_args(
+        dict(
+            task='exploratory',
+            model='rgbd_sg',
+            distractors=True,
+            premap=True,
+            num_envs=4,
+            seed=3,
+            env_option=['image_size=8', 'max_steps=40'],
+            model_option=['hidden=16', 'cnn_fc=16,16,16'],
+        )
+    )
     assert TrainConfig.from_dict(old) == new
     assert new.env.camera.width == new.env.camera.height == 8 and new.env.premap and new.distractors
     assert new.network.pooling == 'mean' and new.network.hidden == 16
@@ -382,7 +491,9 @@ def test_eval_writes_table(reference, tmp_path, xla_cache):
     r = run_cli('eval.py', [str(ref_dir), '--episodes', '6', '--out', str(out)], xla_cache)
     assert r.returncode == 0, r.stderr[-2000:]
     table = (out / 'eval.md').read_text()
-    assert '| SR ↑ | SPL ↑ |' in table and '| choice | no | SG + TD ATTN | trained (sampled) | 1 x 6 |' in table
+    assert (
+        '| SR ↑ | SPL ↑ |' in table and '| choice | no | SG + TD ATTN | trained (sampled) | 1 x 6 |' in table
+    )
     assert table.splitlines()[2] in r.stdout
     res = json.loads((out / 'eval.json').read_text())
     assert res['step'] == 8 and res['summary']['episodes'] == 6
@@ -390,8 +501,22 @@ def test_eval_writes_table(reference, tmp_path, xla_cache):
     assert sr.shape == (1, 6) and res['summary']['success']['mean'] == pytest.approx(sr.mean())
     assert (out / 'trajectories.png').stat().st_size > 0
     # A reference policy needs no run: the choice oracle is always right (in-process: no imports).
-    rc = evaluation.main(['--policy', 'oracle', '--task', 'choice', '--episodes', '5', '--plots', '0',
-                          '--out', str(tmp_path / 'oracle'), '--compile-cache', 'none'])
+    rc = evaluation.main(
+        [
+            '--policy',
+            'oracle',
+            '--task',
+            'choice',
+            '--episodes',
+            '5',
+            '--plots',
+            '0',
+            '--out',
+            str(tmp_path / 'oracle'),
+            '--compile-cache',
+            'none',
+        ]
+    )
     assert rc == 0
     assert '1.000 ± 0.000 | 1.000 ± 0.000 |' in (tmp_path / 'oracle' / 'eval.md').read_text()
 
@@ -399,7 +524,7 @@ def test_eval_writes_table(reference, tmp_path, xla_cache):
 # --- scenes in run dirs, held-out evaluation --------------------------------------------------------
 def test_scene_paths_are_repo_relative_and_resolve_anywhere(tmp_path):
     inside = make_config('exploratory', overrides={'scene': str(ROOT / 'scenes' / 'house.xml')})
-    assert inside.scene == 'scenes/house.xml'      # config.json survives moving the repository
+    assert inside.scene == 'scenes/house.xml'  # config.json survives moving the repository
     assert inside.scene_path == str(ROOT / 'scenes' / 'house.xml')
     assert TrainConfig.from_dict(inside.to_dict()) == inside
     outside = tmp_path / 'my_house.xml'
@@ -409,15 +534,29 @@ def test_scene_paths_are_repo_relative_and_resolve_anywhere(tmp_path):
 
 def test_eval_on_a_held_out_scene(tmp_path):
     """eval.py RUN --scene OTHER evaluates the run's policy in a house it never saw."""
-    config = config_from_args(dict(
-        task='exploratory', model='rgbd_sg_attn', num_envs=2, num_steps=2, epochs=1, minibatches=1,
-        total_steps=4, log_every=1, checkpoint_every=1, fast_compile=True, env_option=['image_size=8'],
-        model_option=TINY_MODEL + ['cnn_fc=16,16,16'], scene=str(ROOT / 'scenes' / 'house.xml')))
+    config = config_from_args(
+        dict(
+            task='exploratory',
+            model='rgbd_sg_attn',
+            num_envs=2,
+            num_steps=2,
+            epochs=1,
+            minibatches=1,
+            total_steps=4,
+            log_every=1,
+            checkpoint_every=1,
+            fast_compile=True,
+            env_option=['image_size=8'],
+            model_option=TINY_MODEL + ['cnn_fc=16,16,16'],
+            scene=str(ROOT / 'scenes' / 'house.xml'),
+        )
+    )
     run_dir = tmp_path / 'run'
     train(config, run_dir)
     held_out = ROOT / 'scenes' / 'house_1.xml'
-    rc = evaluation.main([str(run_dir), '--scene', str(held_out), '--episodes', '2', '--plots', '0',
-                          '--compile-cache', 'none'])
+    rc = evaluation.main(
+        [str(run_dir), '--scene', str(held_out), '--episodes', '2', '--plots', '0', '--compile-cache', 'none']
+    )
     assert rc == 0
     res = json.loads((run_dir / 'eval_trained_sampled_house_1' / 'eval.json').read_text())
     assert res['config']['scene'] == 'scenes/house_1.xml' and res['step'] == 1
@@ -429,10 +568,13 @@ def test_eval_on_a_held_out_scene(tmp_path):
     assert evaluation.main([str(run_dir), '--scene', 'scenes/no_such_scene.xml']) == 2
 
 
-@pytest.mark.parametrize('argv,needle', [
-    (['--scene', 'scenes/house_1.xml'], 'the choice task has no scene'),
-    (['--distractors'], 'drop --task / --distractors'),
-])
+@pytest.mark.parametrize(
+    'argv,needle',
+    [
+        (['--scene', 'scenes/house_1.xml'], 'the choice task has no scene'),
+        (['--distractors'], 'drop --task / --distractors'),
+    ],
+)
 def test_eval_rejects_bad_env_options_with_a_run(reference, argv, needle, capsys):
     _, ref_dir, _ = reference
     assert evaluation.main([str(ref_dir)] + argv) == 2
@@ -443,6 +585,7 @@ def test_eval_rejects_bad_env_options_with_a_run(reference, argv, needle, capsys
 def test_tune_malloc_applies_on_glibc():
     # Its speed effect is measured by `python -m hron_jax.bench model` (README); here: it applies.
     import platform
+
     if platform.libc_ver()[0] != 'glibc':
         pytest.skip('not a glibc system')
     assert tune_malloc() is True

@@ -128,12 +128,20 @@ def main() -> None:
         h1 = conv1(x_dict, ei_dict)
         h2 = conv2({k: v.relu() for k, v in h1.items()}, ei_dict)
     hgt = dict(
-        node_type=node_type, senders=senders.astype(np.int32), receivers=receivers.astype(np.int32),
-        edge_type=edge_type, x=x, out1=to_global(h1, OUT_CH), out2=to_global(h2, OUT_CH),
-        heads=np.int32(HEADS), node_type_names=np.array(names),
+        node_type=node_type,
+        senders=senders.astype(np.int32),
+        receivers=receivers.astype(np.int32),
+        edge_type=edge_type,
+        x=x,
+        out1=to_global(h1, OUT_CH),
+        out2=to_global(h2, OUT_CH),
+        heads=np.int32(HEADS),
+        node_type_names=np.array(names),
         relation_names=np.array(["__".join(t) for t in triples]),
         torch_geometric_version=np.array(torch_geometric.__version__),
-        torch_version=np.array(torch.__version__), **weights)
+        torch_version=np.array(torch.__version__),
+        **weights,
+    )
 
     # --- GCN on the same edges as one homogeneous graph ---------------------------------------
     g1, g2 = GCNConv(IN_CH, OUT_CH), GCNConv(OUT_CH, OUT_CH)
@@ -150,11 +158,18 @@ def main() -> None:
     with torch.no_grad():
         o1 = g1(xt, ei)
         o2 = g2(o1.relu(), ei)
-    gcn = dict(node_type=node_type, senders=senders.astype(np.int32),
-               receivers=receivers.astype(np.int32), edge_type=edge_type, x=x,
-               out1=o1.numpy(), out2=o2.numpy(),
-               torch_geometric_version=np.array(torch_geometric.__version__),
-               torch_version=np.array(torch.__version__), **gw)
+    gcn = dict(
+        node_type=node_type,
+        senders=senders.astype(np.int32),
+        receivers=receivers.astype(np.int32),
+        edge_type=edge_type,
+        x=x,
+        out1=o1.numpy(),
+        out2=o2.numpy(),
+        torch_geometric_version=np.array(torch_geometric.__version__),
+        torch_version=np.array(torch.__version__),
+        **gw,
+    )
 
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     for name, data in (("hgt_reference.npz", hgt), ("gcn_reference.npz", gcn)):

@@ -27,12 +27,14 @@ exists with fewer env steps than its profile asks for is resumed to that budget 
 --resume RUN --total-steps N`) and evaluated again.
 
 Generalisation (beyond the paper): each seed of an exploratory main-model cell is also evaluated
-on the generated houses it never saw (HELD_OUT, `eval.py RUN --scene HOUSE`). Numbers are only ever read from run dirs: a cell without runs is listed as not run, with its
-commands and a cost estimate from measured env steps/s (its own runs, else a --probe run).
+on the generated houses it never saw (HELD_OUT, `eval.py RUN --scene HOUSE`). Numbers are only
+ever read from run dirs: a cell without runs is listed as not run, with its commands and a cost
+estimate from measured env steps/s (its own runs, else a --probe run).
 
 Report statistics: SR / SPL = mean over all episodes of all seeds, +- std over seeds of the
 per-seed means (our reading of the paper's "averaged over 20 episodes across three random seeds").
 """
+
 from __future__ import annotations
 
 import argparse
@@ -54,10 +56,10 @@ sys.path.insert(0, str(ROOT))
 
 from hron_jax.bench import machine  # noqa: E402
 
-
 # ------------------------------------------------------------------------------------------------
 # The grid, with the paper's numbers (hron_paper.tex Tables I-III; SR / SPL mean +- std)
 # ------------------------------------------------------------------------------------------------
+
 
 @dataclasses.dataclass(frozen=True)
 class Cell:
@@ -71,16 +73,22 @@ class Cell:
 
     @property
     def name(self) -> str:
-        return '_'.join([self.task, self.model] + (['dist'] if self.distractors else [])
-                        + (['pm'] if self.premap else []))
+        return '_'.join(
+            [self.task, self.model] + (['dist'] if self.distractors else []) + (['pm'] if self.premap else [])
+        )
 
     @property
     def label(self) -> str:
-        names = {'rgbd': 'RGB-D only', 'rgbd_mm': 'RGB-D + MM', 'rgbd_sg': 'RGB-D + SG',
-                 'rgbd_sg_attn': 'RGB-D + SG + TD ATTN', 'gcn': 'Kipf et al. (GCN)',
-                 'yang': 'Yang et al.'}
+        names = {
+            'rgbd': 'RGB-D only',
+            'rgbd_mm': 'RGB-D + MM',
+            'rgbd_sg': 'RGB-D + SG',
+            'rgbd_sg_attn': 'RGB-D + SG + TD ATTN',
+            'gcn': 'Kipf et al. (GCN)',
+            'yang': 'Yang et al.',
+        }
         label = names[self.model]
-        if self.task == 'choice':      # symbolic task: the SG models see only the graph
+        if self.task == 'choice':  # symbolic task: the SG models see only the graph
             label = label.replace('RGB-D + ', '')
         return ('PM: ' + label) if self.premap else label
 
@@ -109,15 +117,20 @@ GRID: tuple[Cell, ...] = (
     Cell(3, 'exploratory', 'rgbd_sg', premap=True, paper_sr=(0.634, 0.108), paper_spl=(0.402, 0.037)),
     Cell(3, 'exploratory', 'rgbd_sg_attn', premap=True, paper_sr=(0.921, 0.005), paper_spl=(0.738, 0.045)),
 )
-TABLE_TITLES = {1: 'Table I: relational object choice (SR)',
-                2: 'Table II: directed object navigation (SR, SPL)',
-                3: 'Table III: exploratory object navigation (SR, SPL)'}
+TABLE_TITLES = {
+    1: 'Table I: relational object choice (SR)',
+    2: 'Table II: directed object navigation (SR, SPL)',
+    3: 'Table III: exploratory object navigation (SR, SPL)',
+}
 
 # Profiles: extra train.py options per task (None: the task is not in the profile).
 PROFILES = {
     'paper': {'choice': [], 'directed': [], 'exploratory': []},
-    'cpu': {'choice': ['--total-steps', '20480', '--model-option', 'hidden=32'],
-            'directed': ['--total-steps', '131072'], 'exploratory': ['--total-steps', '32768']},
+    'cpu': {
+        'choice': ['--total-steps', '20480', '--model-option', 'hidden=32'],
+        'directed': ['--total-steps', '131072'],
+        'exploratory': ['--total-steps', '32768'],
+    },
 }
 PAPER_STEPS = {'choice': 200_000, 'directed': 1_500_000, 'exploratory': 1_500_000}
 
@@ -129,15 +142,19 @@ def profile_steps(profile: str, task: str) -> int:
 
 # Facts about the setup that reading a table needs (they do not depend on particular runs).
 NOTES = {
-    1: ['Notes. (1) Without distractors the choice scene has exactly 4 nodes, all of goal categories '
+    1: [
+        'Notes. (1) Without distractors the choice scene has exactly 4 nodes, all of goal categories '
         '(2 circles, 2 rectangles), so task-driven pooling and mean pooling select the same nodes: SG '
         'and SG + TD ATTN compute the same function and, from the same seed, train identically (their '
         'rows and curves coincide). (2) Profile `cpu`: the paper does not state the choice budget; '
         'our runs use 20,480 env steps per seed and HGT hidden width 32 (paper model: 128) so that '
         'the 12 runs fit ~30 min on 2 shared cores; at the paper width a 10-update trial of the '
-        'distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed that has not left chance SR (0.5) by the end '
-        'of this budget counts as it is; the learning curves show when the others jumped.'],
-    2: ['Notes. (1) Budget: the env steps column; rows of profile `cpu` ran '
+        'distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed that '
+        'has not left chance SR (0.5) by the end '
+        'of this budget counts as it is; the learning curves show when the others jumped.'
+    ],
+    2: [
+        'Notes. (1) Budget: the env steps column; rows of profile `cpu` ran '
         f'{profile_steps("cpu", "directed"):,} env steps per seed '
         f'({profile_steps("cpu", "directed") // 4096} PPO updates of 64 envs x 64 steps, '
         f'{100 * profile_steps("cpu", "directed") / PAPER_STEPS["directed"]:.0f} % of the paper\'s '
@@ -146,13 +163,16 @@ NOTES = {
         'converged policies; the paper budget is the `paper` profile (commands and measured cost '
         'below, when not run). '
         '(2) The PPO update of the graph models dominates the time on the CPU (README, `python -m '
-        'hron_jax.bench train`); graph-free RGB-D only trains ~3x faster.'],
-    3: ['Notes. (1) Budget: profile `cpu` rows ran '
+        'hron_jax.bench train`); graph-free RGB-D only trains ~3x faster.'
+    ],
+    3: [
+        'Notes. (1) Budget: profile `cpu` rows ran '
         f'{profile_steps("cpu", "exploratory"):,} env steps per seed '
         f'({100 * profile_steps("cpu", "exploratory") / PAPER_STEPS["exploratory"]:.0f} % of the '
         'paper\'s 1.5 M). (2) Estimates for cells without runs use, in order, the '
         'cell\'s own runs, its --probe, or (flagged as a proxy) the main model of the same task: '
-        'graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'],
+        'graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'
+    ],
 }
 
 
@@ -194,15 +214,28 @@ def run_references(runs: Path, episodes: int = 20) -> None:
         if (out / 'eval.json').is_file():
             continue
         out.mkdir(parents=True, exist_ok=True)
-        argv = ['python', 'eval.py', '--policy', 'random', '--task', 'exploratory', '--scene',
-                str(ROOT / scene), '--episodes', str(episodes), '--plots', '0', '--out', str(out)]
+        argv = [
+            'python',
+            'eval.py',
+            '--policy',
+            'random',
+            '--task',
+            'exploratory',
+            '--scene',
+            str(ROOT / scene),
+            '--episodes',
+            str(episodes),
+            '--plots',
+            '0',
+            '--out',
+            str(out),
+        ]
         t = run_logged(argv, out.parent / f'random_{Path(scene).stem}.log')
         print(f'random policy on {scene}: eval {t:.0f} s', flush=True)
 
 
 def held_out_dir(run_dir: Path, scene: str) -> Path:
     return Path(run_dir) / f'{EVAL_DIR}_{Path(scene).stem}'
-
 
 
 # eval.py's output dir inside a run (named explicitly: eval.py's default name has changed before).
@@ -212,8 +245,16 @@ EVAL_DIR = 'eval_trained'
 def eval_argv(run_dir: Path, episodes: int, out: Path | None = None, extra=()) -> list[str]:
     """eval.py on a run dir, output to `out` (default RUN/eval_trained); extra: more options."""
     run_dir = Path(run_dir).resolve()
-    return (['python', 'eval.py', str(run_dir), '--episodes', str(episodes), *extra, '--out',
-             str(out or run_dir / EVAL_DIR)])
+    return [
+        'python',
+        'eval.py',
+        str(run_dir),
+        '--episodes',
+        str(episodes),
+        *extra,
+        '--out',
+        str(out or run_dir / EVAL_DIR),
+    ]
 
 
 def eval_json(run_dir: Path) -> Path | None:
@@ -228,6 +269,7 @@ def eval_json(run_dir: Path) -> Path | None:
 # ------------------------------------------------------------------------------------------------
 # Machine and process helpers
 # ------------------------------------------------------------------------------------------------
+
 
 def run_logged(argv: list[str], log: Path) -> float:
     """Run argv (python -> this interpreter) in the repo root, output to `log`; wall seconds."""
@@ -247,8 +289,10 @@ def run_logged(argv: list[str], log: Path) -> float:
 # Reading run dirs
 # ------------------------------------------------------------------------------------------------
 
+
 def _rows(run_dir: Path) -> list[dict]:
     from hron_jax.run_dir import read_metrics
+
     return read_metrics(run_dir)
 
 
@@ -268,7 +312,16 @@ def steps_per_second(run_dirs: list[Path]) -> float | None:
 
 def collect_cell(runs: Path, cell: Cell) -> dict | None:
     """Aggregate a cell's evaluated runs: per-seed SR / SPL means, steps, wall times, configs."""
-    seeds, steps, train_wall, proc_wall, configs, episodes, machines, loads = [], [], [], [], [], set(), [], []
+    seeds, steps, train_wall, proc_wall, configs, episodes, machines, loads = (
+        [],
+        [],
+        [],
+        [],
+        [],
+        set(),
+        [],
+        [],
+    )
     for d in cell_runs(runs, cell):
         ev = eval_json(d)
         if ev is None:
@@ -296,20 +349,28 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
     sr = np.array([x[1] for x in seeds])
     spl = np.array([x[2] for x in seeds])
     c0 = configs[0]['config']
-    return {'seeds': [x[0] for x in seeds], 'sr': (float(sr.mean()), float(sr.std())),
-            'spl': (float(spl.mean()), float(spl.std())), 'sr_per_seed': sr.tolist(),
-            'episodes': sorted(episodes), 'env_steps': sorted(set(steps)),
-            'train_wall_s': float(np.mean(train_wall)) if train_wall else None,
-            'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
-            'steps_per_s': steps_per_second(cell_runs(runs, cell)),
-            'model_options': model_options(c0), 'num_envs': c0['ppo']['num_envs'],
-            'meta': configs[0].get('meta', {}), 'machine': machines[0] if machines else None,
-            'loads': loads}
+    return {
+        'seeds': [x[0] for x in seeds],
+        'sr': (float(sr.mean()), float(sr.std())),
+        'spl': (float(spl.mean()), float(spl.std())),
+        'sr_per_seed': sr.tolist(),
+        'episodes': sorted(episodes),
+        'env_steps': sorted(set(steps)),
+        'train_wall_s': float(np.mean(train_wall)) if train_wall else None,
+        'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
+        'steps_per_s': steps_per_second(cell_runs(runs, cell)),
+        'model_options': model_options(c0),
+        'num_envs': c0['ppo']['num_envs'],
+        'meta': configs[0].get('meta', {}),
+        'machine': machines[0] if machines else None,
+        'loads': loads,
+    }
 
 
 def model_options(config: dict) -> list[tuple]:
     """(field, value) of a run's network that differ from its variant's defaults."""
     from hron_jax.run_config import TrainConfig, config_diff, make_config
+
     cfg = TrainConfig.from_dict(config)
     diff = config_diff(make_config(cfg.task, cfg.model), cfg)
     return [(k.split('.', 1)[1], b) for k, (_, b) in diff.items() if k.startswith('network.')]
@@ -335,6 +396,7 @@ def curve_rows(run_dirs: list[Path], key: str = 'success') -> list[dict]:
 # Report
 # ------------------------------------------------------------------------------------------------
 
+
 def _rel(p: Path) -> str:
     try:
         return Path(p).resolve().relative_to(ROOT).as_posix()
@@ -345,7 +407,7 @@ def _rel(p: Path) -> str:
 def _pm(x, digits=3):
     if x is None:
         return '-'
-    if 0 < abs(x[0]) < 0.1:     # the paper's Yang et al. SPL 0.0302 ± 0.0013 keeps its digits
+    if 0 < abs(x[0]) < 0.1:  # the paper's Yang et al. SPL 0.0302 ± 0.0013 keeps its digits
         digits += 1
     return f'{x[0]:.{digits}f} ± {x[1]:.{digits}f}'
 
@@ -361,12 +423,19 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
     that has a measurement: its own runs, its --probe, then (flagged as a proxy) the runs and the
     probe of the main model on the same task (closest distractor / premap setting first), then the
     exploratory main model's probe (the PPO update of the graph model dominates either way)."""
-    mains = sorted((c for c in GRID if c.task == cell.task and c.model == 'rgbd_sg_attn' and c != cell),
-                   key=lambda c: (c.distractors != cell.distractors, c.premap != cell.premap))
+    mains = sorted(
+        (c for c in GRID if c.task == cell.task and c.model == 'rgbd_sg_attn' and c != cell),
+        key=lambda c: (c.distractors != cell.distractors, c.premap != cell.premap),
+    )
     sources = [(cell, 'runs', 'its runs'), (cell, 'probe', '--probe')]
     sources += [(m, kind, f'proxy: {kind} of {m.name}') for m in mains for kind in ('runs', 'probe')]
-    sources.append((next(c for c in GRID if c.name == 'exploratory_rgbd_sg_attn'), 'probe',
-                    'proxy: probe of exploratory_rgbd_sg_attn'))
+    sources.append(
+        (
+            next(c for c in GRID if c.name == 'exploratory_rgbd_sg_attn'),
+            'probe',
+            'proxy: probe of exploratory_rgbd_sg_attn',
+        )
+    )
     rate = src = None
     for c, kind, what in sources:
         probe = runs / '_probe' / c.name
@@ -374,8 +443,11 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
         rate, src = steps_per_second(dirs), what
         if rate is not None:
             side = probe / 'repro.json'
-            load = (json.loads(side.read_text()).get('machine', {}).get('loadavg')
-                    if kind == 'probe' and side.is_file() else None)
+            load = (
+                json.loads(side.read_text()).get('machine', {}).get('loadavg')
+                if kind == 'probe' and side.is_file()
+                else None
+            )
             if load:
                 src += f', load average {load[0]:.1f}'
             break
@@ -388,6 +460,7 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
 
 def plot_curves(runs: Path, cells: list[Cell], path: Path, title: str) -> bool:
     from hron_jax.metrics_log import plot_learning_curves
+
     curves = {}
     for c in cells:
         dirs = cell_runs(runs, c)
@@ -412,8 +485,11 @@ def generalisation_section(runs: Path) -> list[str]:
             continue
         cols = []
         for path_of in [eval_json] + [lambda d, s=s: held_out_dir(d, s) / 'eval.json' for s in HELD_OUT]:
-            per_seed = [json.loads(p.read_text())['summary'] for p in map(path_of, dirs)
-                        if p is not None and p.is_file()]
+            per_seed = [
+                json.loads(p.read_text())['summary']
+                for p in map(path_of, dirs)
+                if p is not None and p.is_file()
+            ]
             if not per_seed:
                 cols.append('not yet run')
                 continue
@@ -426,22 +502,34 @@ def generalisation_section(runs: Path) -> list[str]:
     for scene in (TRAIN_HOUSE,) + HELD_OUT:
         p = reference_dir(runs, 'random', scene) / 'eval.json'
         sm = json.loads(p.read_text())['summary'] if p.is_file() else None
-        ref.append(f"{sm['success']['mean']:.3f} / {sm['spl']['mean']:.3f} (1 x {sm['episodes']})"
-                   if sm else 'not yet run')
+        ref.append(
+            f"{sm['success']['mean']:.3f} / {sm['spl']['mean']:.3f} (1 x {sm['episodes']})"
+            if sm
+            else 'not yet run'
+        )
     if rows:
         rows.append(['random policy (chance level)', '-'] + ref)
-    out = ['## Generalisation: exploratory navigation in houses not seen in training', '',
-           'Beyond the paper (which trains and tests in one house): the exploratory main model, trained '
-           'in scenes/house.xml, evaluated unchanged (`eval.py RUN --scene HOUSE --episodes 20`) in the '
-           'generated houses ' + ', '.join(f'`{s}`' for s in HELD_OUT) + ' (other room layouts, '
-           'furniture and goal sets; the model takes any node count). Cells: SR / SPL (seeds x '
-           'episodes per seed).', '']
+    out = [
+        '## Generalisation: exploratory navigation in houses not seen in training',
+        '',
+        'Beyond the paper (which trains and tests in one house): the exploratory main model, trained '
+        'in scenes/house.xml, evaluated unchanged (`eval.py RUN --scene HOUSE --episodes 20`) in the '
+        'generated houses ' + ', '.join(f'`{s}`' for s in HELD_OUT) + ' (other room layouts, '
+        'furniture and goal sets; the model takes any node count). Cells: SR / SPL (seeds x '
+        'episodes per seed).',
+        '',
+    ]
     if not rows:
-        return out + ['No exploratory main-model run yet: `python tools/reproduce.py --tables 3 '
-                      '--cells "exploratory_rgbd_sg_attn$"` trains one and evaluates it here.', '']
-    out[-2] += (' Last row: a uniformly random policy in each house (`eval.py --policy random '
-                '--task exploratory --scene HOUSE`), the chance level: houses differ in size, start '
-                'distances and goal sets, so an SR is only meaningful next to it.')
+        return out + [
+            'No exploratory main-model run yet: `python tools/reproduce.py --tables 3 '
+            '--cells "exploratory_rgbd_sg_attn$"` trains one and evaluates it here.',
+            '',
+        ]
+    out[-2] += (
+        ' Last row: a uniformly random policy in each house (`eval.py --policy random '
+        '--task exploratory --scene HOUSE`), the chance level: houses differ in size, start '
+        'distances and goal sets, so an SR is only meaningful next to it.'
+    )
     head = ['Model', 'Env steps / seed', 'house.xml (training)'] + [Path(s).name for s in HELD_OUT]
     out += ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     out += ['| ' + ' | '.join(r) + ' |' for r in rows]
@@ -452,8 +540,10 @@ def attention_figures(runs: Path, figdir: Path, episodes: int = 8, max_steps: in
     """Figures and attention_summary.json of seed 0 of each of ATTENTION_CELLS (hron_jax.analysis,
     as the notebook draws them): `episodes` sampled episodes without and with distractors."""
     import matplotlib
+
     matplotlib.use('Agg')
     from hron_jax import analysis as A
+
     for name in ATTENTION_CELLS:
         run_dir = runs / name / 's0'
         if eval_json(run_dir) is None:
@@ -461,42 +551,73 @@ def attention_figures(runs: Path, figdir: Path, episodes: int = 8, max_steps: in
             continue
         t = time.perf_counter()
         run = A.load_run(run_dir)
-        recs = {label: A.collect(run, episodes=episodes, max_steps=max_steps,
-                                 env=run.env_variant(distractors=dist))
-                for label, dist in (('no distractors', False), ('distractors', True))}
+        recs = {
+            label: A.collect(
+                run, episodes=episodes, max_steps=max_steps, env=run.env_variant(distractors=dist)
+            )
+            for label, dist in (('no distractors', False), ('distractors', True))
+        }
         rec = recs['distractors' if run.config.distractors else 'no distractors']
         ep = int(np.argmax(rec.success)) if rec.success.any() else 0
         figdir.mkdir(parents=True, exist_ok=True)
-        for kind, fig in (('graph_on_map', A.plot_graph_on_map(rec, episode=ep)),
-                          ('edge_types', A.plot_edge_type_attention(rec, title=f'{name}: attention mass per edge type')),
-                          ('goal_concentration', A.plot_goal_concentration(recs, title=f'{name}: goal-category nodes vs others'))):
+        for kind, fig in (
+            ('graph_on_map', A.plot_graph_on_map(rec, episode=ep)),
+            ('edge_types', A.plot_edge_type_attention(rec, title=f'{name}: attention mass per edge type')),
+            (
+                'goal_concentration',
+                A.plot_goal_concentration(recs, title=f'{name}: goal-category nodes vs others'),
+            ),
+        ):
             fig.savefig(figdir / f'{name}_{kind}.png', dpi=90, bbox_inches='tight')
         summary = {label: A.summary(r) for label, r in recs.items()}
-        (run_dir / 'attention_summary.json').write_text(json.dumps(
-            dict(run_dir=_rel(run_dir), step=run.step, episodes=episodes, max_steps=max_steps,
-                 summary=summary), indent=2) + '\n')
+        (run_dir / 'attention_summary.json').write_text(
+            json.dumps(
+                dict(
+                    run_dir=_rel(run_dir),
+                    step=run.step,
+                    episodes=episodes,
+                    max_steps=max_steps,
+                    summary=summary,
+                ),
+                indent=2,
+            )
+            + '\n'
+        )
         print(f'attention: {name} in {time.perf_counter() - t:.0f} s', flush=True)
 
 
 def attention_section(runs: Path, figdir: Path, out_dir: Path) -> list[str]:
-    lines = ['## Attention analysis', '',
-             '`notebooks/attention_analysis.ipynb` (helpers in `hron_jax/analysis.py`) reads any of '
-             'these run dirs (`HRON_RUN_DIR=runs/repro/<cell>/s0`) and shows HGT attention per layer '
-             'and edge type, the task-driven pooling weights, the scene graph over the house map '
-             'and the concentration on goal-category nodes with and without distractors.', '']
+    lines = [
+        '## Attention analysis',
+        '',
+        '`notebooks/attention_analysis.ipynb` (helpers in `hron_jax/analysis.py`) reads any of '
+        'these run dirs (`HRON_RUN_DIR=runs/repro/<cell>/s0`) and shows HGT attention per layer '
+        'and edge type, the task-driven pooling weights, the scene graph over the house map '
+        'and the concentration on goal-category nodes with and without distractors.',
+        '',
+    ]
     for name in ATTENTION_CELLS:
         side = runs / name / 's0' / 'attention_summary.json'
         if not side.is_file():
             continue
         a = json.loads(side.read_text())
-        lines += [f'### {name} (seed 0, checkpoint after {a["step"]} updates)', '',
-                  f'`python tools/reproduce.py --attention`: {a["episodes"]} sampled episodes of at most '
-                  f'{a["max_steps"]} steps, without and with distractors.', '',
-                  '| condition | ' + ' | '.join(k.replace('_', ' ') for k in a['summary'][next(iter(a['summary']))]) + ' |',
-                  '|---|' + '---|' * len(a['summary'][next(iter(a['summary']))])]
+        lines += [
+            f'### {name} (seed 0, checkpoint after {a["step"]} updates)',
+            '',
+            f'`python tools/reproduce.py --attention`: {a["episodes"]} sampled episodes of at most '
+            f'{a["max_steps"]} steps, without and with distractors.',
+            '',
+            '| condition | '
+            + ' | '.join(k.replace('_', ' ') for k in a['summary'][next(iter(a['summary']))])
+            + ' |',
+            '|---|' + '---|' * len(a['summary'][next(iter(a['summary']))]),
+        ]
         for label, sm in a['summary'].items():
-            lines.append(f'| {label} | ' + ' | '.join(f'{v:.3g}' if isinstance(v, float) else str(v)
-                                                     for v in sm.values()) + ' |')
+            lines.append(
+                f'| {label} | '
+                + ' | '.join(f'{v:.3g}' if isinstance(v, float) else str(v) for v in sm.values())
+                + ' |'
+            )
         lines.append('')
         for kind in ('graph_on_map', 'edge_types', 'goal_concentration'):
             png = figdir / f'{name}_{kind}.png'
@@ -507,35 +628,46 @@ def attention_section(runs: Path, figdir: Path, out_dir: Path) -> list[str]:
 
 def write_report(runs: Path, out: Path, seeds: int) -> str:
     figdir = out.parent / 'reproduction'
-    lines = ['# Reproduction of Tables I-III', '',
-             f'Generated by `python tools/reproduce.py --from-runs` from the run dirs under `{_rel(runs)}` '
-             f'({time.strftime("%Y-%m-%d %H:%M")}). Numbers below are read from those runs only; '
-             'cells without runs say so and give the commands and the measured cost to produce them.',
-             '']
+    lines = [
+        '# Reproduction of Tables I-III',
+        '',
+        f'Generated by `python tools/reproduce.py --from-runs` from the run dirs under `{_rel(runs)}` '
+        f'({time.strftime("%Y-%m-%d %H:%M")}). Numbers below are read from those runs only; '
+        'cells without runs say so and give the commands and the measured cost to produce them.',
+        '',
+    ]
     found = {c: collect_cell(runs, c) for c in GRID}
     m = next((f['machine'] for f in found.values() if f and f['machine']), None) or machine()
     loads = [x for f in found.values() if f for x in f['loads']]
-    load_txt = (f'{min(loads):.1f}-{max(loads):.1f}' if loads else str(m.get('loadavg', '?')))
-    lines += ['## Machine and protocol', '',
-              f'- machine: {m.get("cpu")}, {m.get("cores")} logical cores, JAX {m.get("jax", "?")} on '
-              f'{", ".join(m.get("devices", [])) or "?"}; 1-min load average during the runs '
-              f'{load_txt} (the cores are shared with other jobs: at load ~7 the same program ran '
-              '2.5x slower than at ~1, so wall times are upper bounds).',
-              f'- per cell: {seeds} seeds planned (separate `train.py` runs, seeds 0..{seeds - 1}; the '
-              '"Seeds x episodes" column says how many ran); the final '
-              f'checkpoint of each seed is evaluated with `eval.py RUN --episodes N` (same episode '
-              'starts / goals for every seed and model; actions sampled from the policy).',
-              '- SR / SPL: mean over all episodes of all seeds ± std over seeds of the per-seed means '
-              '(the paper: "averaged over 20 episodes across three random seeds").',
-              '- env steps: per seed; wall: mean per seed of training (excluding compilation, from '
-              'metrics.jsonl) and of the whole train + eval processes (compilation included).', '']
+    load_txt = f'{min(loads):.1f}-{max(loads):.1f}' if loads else str(m.get('loadavg', '?'))
+    lines += [
+        '## Machine and protocol',
+        '',
+        f'- machine: {m.get("cpu")}, {m.get("cores")} logical cores, JAX {m.get("jax", "?")} on '
+        f'{", ".join(m.get("devices", [])) or "?"}; 1-min load average during the runs '
+        f'{load_txt} (the cores are shared with other jobs: at load ~7 the same program ran '
+        '2.5x slower than at ~1, so wall times are upper bounds).',
+        f'- per cell: {seeds} seeds planned (separate `train.py` runs, seeds 0..{seeds - 1}; the '
+        '"Seeds x episodes" column says how many ran); the final '
+        f'checkpoint of each seed is evaluated with `eval.py RUN --episodes N` (same episode '
+        'starts / goals for every seed and model; actions sampled from the policy).',
+        '- SR / SPL: mean over all episodes of all seeds ± std over seeds of the per-seed means '
+        '(the paper: "averaged over 20 episodes across three random seeds").',
+        '- env steps: per seed; wall: mean per seed of training (excluding compilation, from '
+        'metrics.jsonl) and of the whole train + eval processes (compilation included).',
+        '',
+    ]
     for table in (1, 2, 3):
         cells = [c for c in GRID if c.table == table]
         lines += [f'## {TABLE_TITLES[table]}', '']
         spl = table > 1
-        head = ['Distractors' if table < 3 else 'Pre-map', 'Model', 'Paper SR'] + \
-               (['Paper SPL'] if spl else []) + ['Ours SR'] + (['Ours SPL'] if spl else []) + \
-               ['Seeds x episodes', 'Env steps / seed', 'Train wall / seed', 'Process wall / seed', 'Config']
+        head = (
+            ['Distractors' if table < 3 else 'Pre-map', 'Model', 'Paper SR']
+            + (['Paper SPL'] if spl else [])
+            + ['Ours SR']
+            + (['Ours SPL'] if spl else [])
+            + ['Seeds x episodes', 'Env steps / seed', 'Train wall / seed', 'Process wall / seed', 'Config']
+        )
         lines += ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
         missing = []
         for c in cells:
@@ -550,51 +682,77 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                 # One seed has no spread over seeds to report (± 0 would claim one).
                 ours = (lambda x: f'{x[0]:.3f} (1 seed)') if len(f['seeds']) == 1 else _pm
                 row += [ours(f['sr'])] + ([ours(f['spl'])] if spl else [])
-                row += [f"{len(f['seeds'])} x {'/'.join(map(str, f['episodes']))}",
-                        '/'.join(f'{s:,}' for s in f['env_steps']), _fmt_time(f['train_wall_s']),
-                        _fmt_time(f['proc_wall_s']), f"{opts}; {f['num_envs']} envs"]
+                row += [
+                    f"{len(f['seeds'])} x {'/'.join(map(str, f['episodes']))}",
+                    '/'.join(f'{s:,}' for s in f['env_steps']),
+                    _fmt_time(f['train_wall_s']),
+                    _fmt_time(f['proc_wall_s']),
+                    f"{opts}; {f['num_envs']} envs",
+                ]
             lines.append('| ' + ' | '.join(row) + ' |')
         lines.append('')
         done = [(c, found[c]) for c in cells if found[c] is not None]
         if done:
-            lines += ['Per-seed SR (seed: SR): ' + '; '.join(
-                f"{c.label}{' + distractors' if c.distractors else ''}{' (PM)' if c.premap and 'PM' not in c.label else ''}: "
-                + ', '.join(f'{sd}: {v:.3f}' for sd, v in zip(f['seeds'], f['sr_per_seed']))
-                for c, f in done), '']
+            lines += [
+                'Per-seed SR (seed: SR): '
+                + '; '.join(
+                    f"{c.label}{' + distractors' if c.distractors else ''}"
+                    f"{' (PM)' if c.premap and 'PM' not in c.label else ''}: "
+                    + ', '.join(f'{sd}: {v:.3f}' for sd, v in zip(f['seeds'], f['sr_per_seed']))
+                    for c, f in done
+                ),
+                '',
+            ]
         if NOTES.get(table):
             lines += NOTES[table] + ['']
         fig = figdir / f'table{table}_curves.png'
         if plot_curves(runs, cells, fig, TABLE_TITLES[table] + ': training SR, mean ± std over seeds'):
-            lines += [f'![learning curves]({fig.relative_to(out.parent).as_posix()})', '',
-                      'Training success rate (episodes completed in each logged chunk of updates, '
-                      'sampled actions) against env steps per seed; band: std over seeds.', '']
+            lines += [
+                f'![learning curves]({fig.relative_to(out.parent).as_posix()})',
+                '',
+                'Training success rate (episodes completed in each logged chunk of updates, '
+                'sampled actions) against env steps per seed; band: std over seeds.',
+                '',
+            ]
         if missing:
-            lines += ['Not yet run (commands per seed, then the report; estimated training cost for '
-                      f'{seeds} seeds at the paper\'s budget of {PAPER_STEPS[cells[0].task]:,} env '
-                      'steps per seed, from measured steps/s, compilation and evaluation excluded):', '']
+            lines += [
+                'Not yet run (commands per seed, then the report; estimated training cost for '
+                f'{seeds} seeds at the paper\'s budget of {PAPER_STEPS[cells[0].task]:,} env '
+                'steps per seed, from measured steps/s, compilation and evaluation excluded):',
+                '',
+            ]
             total = 0.0
             for c in missing:
                 est, sec = estimate(c, runs, seeds, 'paper')
                 total += sec or 0.0
                 rel = f'runs/repro/{c.name}/s$SEED'
                 cmd = ' '.join(train_argv(c, 0, Path(rel), 'paper')).replace('--seed 0', '--seed $SEED')
-                lines += [f'- `{c.name}` ({c.label}{", distractors" if c.distractors else ""}): '
-                          f'estimated {est}', f'  `for SEED in 0 1 2; do {cmd} && python eval.py '
-                          f'{rel} --episodes {EPISODES[c.task]} --out {rel}/{EVAL_DIR}; done`']
+                lines += [
+                    f'- `{c.name}` ({c.label}{", distractors" if c.distractors else ""}): estimated {est}',
+                    f'  `for SEED in 0 1 2; do {cmd} && python eval.py '
+                    f'{rel} --episodes {EPISODES[c.task]} --out {rel}/{EVAL_DIR}; done`',
+                ]
             if total:
-                lines += ['', f'Total estimated training for these cells on this machine: '
-                          f'{_fmt_time(total)} ({total / 86400:.0f} days).']
+                lines += [
+                    '',
+                    f'Total estimated training for these cells on this machine: '
+                    f'{_fmt_time(total)} ({total / 86400:.0f} days).',
+                ]
             lines.append('')
     lines += generalisation_section(runs)
     lines += attention_section(runs, figdir, out.parent)
-    lines += ['## Regenerating', '',
-              '```bash',
-              'python tools/reproduce.py --plan                 # grid, commands, cost estimates',
-              'python tools/reproduce.py --tables 1 --profile cpu   # Table I as run here (~30 min on 2 cores)',
-              'python tools/reproduce.py --tables 2 3 --profile paper   # navigation (GPU advised)',
-              'python tools/reproduce.py --attention            # attention figures of the trained main models',
-              'python tools/reproduce.py --from-runs            # this report from existing runs',
-              '```', '']
+    lines += [
+        '## Regenerating',
+        '',
+        '```bash',
+        'python tools/reproduce.py --plan                 # grid, commands, cost estimates',
+        'python tools/reproduce.py --tables 1 --profile cpu   # Table I as run here (~30 min on 2 cores)',
+        'python tools/reproduce.py --tables 2 3 --profile paper   # navigation (GPU advised)',
+        'python tools/reproduce.py --attention            # attention figures of the trained main models',
+        'python tools/reproduce.py --from-runs            # this report from existing runs',
+        '```',
+        '',
+    ]
     text = '\n'.join(lines)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
@@ -604,6 +762,7 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
 # ------------------------------------------------------------------------------------------------
 # Running
 # ------------------------------------------------------------------------------------------------
+
 
 def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int) -> None:
     out = runs / cell.name / f's{seed}'
@@ -616,20 +775,31 @@ def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int
     mach = machine()
     targv = train_argv(cell, seed, out, profile)
     previous = json.loads((out / 'repro.json').read_text()) if (out / 'repro.json').is_file() else {}
-    if (out / 'config.json').is_file():       # interrupted, or shorter than the budget: continue
+    if (out / 'config.json').is_file():  # interrupted, or shorter than the budget: continue
         targv = ['python', 'train.py', '--resume', str(out), '--total-steps', str(budget), '--no-progress']
-        for scene in HELD_OUT:                # evaluations of the shorter run are stale
+        for scene in HELD_OUT:  # evaluations of the shorter run are stale
             shutil.rmtree(held_out_dir(out, scene), ignore_errors=True)
     print(f'{cell.name} s{seed}: {shlex.join(targv)}', flush=True)
     t_train = run_logged(targv, out.parent / f's{seed}.train.log')
     load_end = os.getloadavg()[0]
     eargv = eval_argv(out, episodes)
     t_eval = run_logged(eargv, out.parent / f's{seed}.eval.log')
-    (out / 'repro.json').write_text(json.dumps(dict(
-        train_argv=targv, eval_argv=eargv, train_wall_s=t_train + previous.get('train_wall_s', 0.0),
-        eval_wall_s=t_eval,
-        profile=profile, machine=mach, loadavg_training=[mach.get('loadavg', [load_end])[0], load_end],
-        finished=time.strftime('%Y-%m-%d %H:%M:%S')), indent=2) + '\n')
+    (out / 'repro.json').write_text(
+        json.dumps(
+            dict(
+                train_argv=targv,
+                eval_argv=eargv,
+                train_wall_s=t_train + previous.get('train_wall_s', 0.0),
+                eval_wall_s=t_eval,
+                profile=profile,
+                machine=mach,
+                loadavg_training=[mach.get('loadavg', [load_end])[0], load_end],
+                finished=time.strftime('%Y-%m-%d %H:%M:%S'),
+            ),
+            indent=2,
+        )
+        + '\n'
+    )
     print(f'{cell.name} s{seed}: train {t_train:.0f} s, eval {t_eval:.0f} s', flush=True)
     run_held_out(cell, out, episodes)
 
@@ -650,6 +820,7 @@ def run_held_out(cell: Cell, run_dir: Path, episodes: int) -> None:
 def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
     """A short run of a cell at the paper config (a few updates) to measure env steps/s."""
     from hron_jax.run_config import make_config
+
     out = runs / '_probe' / cell.name
     if (out / 'config.json').is_file():
         print(f'probe {cell.name}: exists ({out})')
@@ -662,27 +833,44 @@ def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
     wall = run_logged(argv, out.parent / f'{cell.name}.log')
     # The load average matters on a shared machine (measured: 17 vs 43 exploratory steps/s at load
     # ~7 vs ~1), so it is kept with the measurement.
-    (out / 'repro.json').write_text(json.dumps(dict(
-        train_argv=argv, train_wall_s=wall, machine=mach,
-        loadavg_end=[round(x, 2) for x in os.getloadavg()]), indent=2) + '\n')
+    (out / 'repro.json').write_text(
+        json.dumps(
+            dict(
+                train_argv=argv,
+                train_wall_s=wall,
+                machine=mach,
+                loadavg_end=[round(x, 2) for x in os.getloadavg()],
+            ),
+            indent=2,
+        )
+        + '\n'
+    )
     print(f'probe {cell.name}: {steps_per_second([out])} steps/s, process {wall:.0f} s', flush=True)
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     p.add_argument('--plan', action='store_true', help='print the grid and commands, run nothing')
     p.add_argument('--from-runs', action='store_true', help='only write the report from existing runs')
-    p.add_argument('--attention', action='store_true',
-                   help='draw the attention figures of the trained main models and evaluate the random '
-                   'policy in each house of the generalisation table, then the report')
+    p.add_argument(
+        '--attention',
+        action='store_true',
+        help='draw the attention figures of the trained main models and evaluate the random '
+        'policy in each house of the generalisation table, then the report',
+    )
     p.add_argument('--probe', nargs='+', metavar='CELL', help='measure steps/s of these cells (short runs)')
     p.add_argument('--tables', type=int, nargs='+', default=[1, 2, 3], choices=[1, 2, 3])
     p.add_argument('--cells', help='regex on cell names (e.g. "choice_.*_dist")')
     p.add_argument('--profile', choices=tuple(PROFILES), default='cpu')
     p.add_argument('--seeds', type=int, default=3)
-    p.add_argument('--episodes', type=int, default=None,
-                   help='eval episodes per seed (default: 200 for choice, the paper\'s 20 for navigation)')
+    p.add_argument(
+        '--episodes',
+        type=int,
+        default=None,
+        help='eval episodes per seed (default: 200 for choice, the paper\'s 20 for navigation)',
+    )
     p.add_argument('--runs', default=str(ROOT / 'runs' / 'repro'))
     p.add_argument('--out', default=str(ROOT / 'docs' / 'reproduction.md'))
     a = p.parse_args(argv)
@@ -705,16 +893,22 @@ def main(argv=None) -> int:
             print(f'[Table {c.table}] {c.name:34s} {n_done}/{a.seeds} seeds evaluated; {est}')
             for s in range(a.seeds):
                 d = runs / c.name / f's{s}'
-                print('    ' + shlex.join(train_argv(c, s, d, prof)) + ' && '
-                      + shlex.join(eval_argv(d, a.episodes or EPISODES[c.task])))
-        print(f'estimated training time of the measured cells: {_fmt_time(total)} (compilation and '
-              'evaluation excluded)')
+                print(
+                    '    '
+                    + shlex.join(train_argv(c, s, d, prof))
+                    + ' && '
+                    + shlex.join(eval_argv(d, a.episodes or EPISODES[c.task]))
+                )
+        print(
+            f'estimated training time of the measured cells: {_fmt_time(total)} (compilation and '
+            'evaluation excluded)'
+        )
         return 0
     if a.attention:
         attention_figures(runs, out.parent / 'reproduction')
         run_references(runs)
     elif not a.from_runs:
-        for s in range(a.seeds):            # seed-major: every cell gets a first seed early
+        for s in range(a.seeds):  # seed-major: every cell gets a first seed early
             for c in cells:
                 if PROFILES[a.profile][c.task] is None:
                     print(f'{c.name}: not in profile {a.profile!r}; skipped (use --profile paper)')

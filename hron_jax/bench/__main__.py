@@ -13,16 +13,26 @@ SUBCOMMANDS = {m.__name__.rsplit(".", 1)[1]: m for m in (env, graph, model, trai
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m hron_jax.bench", description=_PACKAGE_DOC,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m hron_jax.bench",
+        description=_PACKAGE_DOC,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="cmd", required=True)
     for name, mod in SUBCOMMANDS.items():
-        mod.add_args(sub.add_parser(name, help=mod.__doc__.split(" (`")[0], description=mod.__doc__,
-                                    formatter_class=argparse.RawDescriptionHelpFormatter))
+        mod.add_args(
+            sub.add_parser(
+                name,
+                help=mod.__doc__.split(" (`")[0],
+                description=mod.__doc__,
+                formatter_class=argparse.RawDescriptionHelpFormatter,
+            )
+        )
     a = parser.parse_args(argv)
     from ..cli import tune_malloc
+
     tune_malloc()
-    sys.stdout.reconfigure(line_buffering=True)   # every line out at once: a run stopped early keeps it
+    sys.stdout.reconfigure(line_buffering=True)  # every line out at once: a run stopped early keeps it
     print(machine_info())
     SUBCOMMANDS[a.cmd].run(a)
     print_load()

@@ -15,10 +15,11 @@ import os
 import platform
 import sys
 import time
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-DEFAULT_SCENE = os.path.join(ROOT, "scenes", "house.xml")
+from hron_jax.paths import DEFAULT_SCENES
+
+DEFAULT_SCENE = DEFAULT_SCENES["exploratory"]
 
 
 def machine() -> dict:
@@ -30,30 +31,37 @@ def machine() -> dict:
             cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
     except OSError:
         pass
-    out = {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
-           "usable_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}
+    out = {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "usable_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+    }
     if hasattr(os, "getloadavg"):
         out["loadavg"] = [round(x, 2) for x in os.getloadavg()]
     try:
         import jax
+
         out["jax"] = jax.__version__
         out["devices"] = [str(d) for d in jax.devices()]
         out["device_kind"] = f"{jax.devices()[0].platform} ({jax.devices()[0].device_kind})"
-    except Exception:   # a report without JAX (e.g. reproduce.py --plan on a bare machine)
+    except Exception:  # a report without JAX (e.g. reproduce.py --plan on a bare machine)
         pass
     return out
 
 
 def machine_info() -> str:
     m = machine()
-    load = ", load avg %.1f %.1f %.1f" % tuple(m["loadavg"]) if "loadavg" in m else ""
-    return (f"CPU: {m['cpu']}, {m['cores']} logical cores ({m['usable_cores']} usable){load}; "
-            f"jax {m.get('jax', '?')} on {m.get('device_kind', '?')}")
+    load = ", load avg {:.1f} {:.1f} {:.1f}".format(*m["loadavg"]) if "loadavg" in m else ""
+    return (
+        f"CPU: {m['cpu']}, {m['cores']} logical cores ({m['usable_cores']} usable){load}; "
+        f"jax {m.get('jax', '?')} on {m.get('device_kind', '?')}"
+    )
 
 
 def print_load() -> None:
     if hasattr(os, "getloadavg"):
-        print("load avg at the end: %.1f %.1f %.1f" % os.getloadavg(), flush=True)
+        print("load avg at the end: {:.1f} {:.1f} {:.1f}".format(*os.getloadavg()), flush=True)
 
 
 def progress(*args) -> None:
@@ -64,6 +72,7 @@ def progress(*args) -> None:
 def timed(thunk: Callable):
     """(result, wall seconds) of thunk(), its result blocked until ready."""
     import jax
+
     t = time.perf_counter()
     out = jax.block_until_ready(thunk())
     return out, time.perf_counter() - t
@@ -76,11 +85,13 @@ def best_time(thunk: Callable, repeats: int) -> float:
 
 def time_calls(fn: Callable, args_seq, repeats: int) -> float:
     """Best-of-`repeats` mean seconds per call of fn over args_seq (results blocked at the end)."""
+
     def run():
         out = None
         for a in args_seq:
             out = fn(*a)
         return out
+
     return best_time(run, repeats) / len(args_seq)
 
 
@@ -105,11 +116,13 @@ def random_placement(scene, batch: int, rng):
     from ..graph_builder import Placement
     from ..scenes import vocabulary as V
 
-    half = V.OBJECT_HALF[scene.vocab_index[scene.num_rooms + scene.num_furniture:]]
+    half = V.OBJECT_HALF[scene.vocab_index[scene.num_rooms + scene.num_furniture :]]
     slot = rng.integers(scene.num_slots, size=(batch, scene.num_objects))
     support = scene.slot_center[:, 2] - scene.slot_half[:, 2]
     pos = np.concatenate([scene.slot_center[slot, :2], (support[slot] + half[None, :, 2])[..., None]], -1)
-    return pos, Placement(active=jnp.ones((batch, scene.num_objects), bool),
-                          pos=jnp.asarray(pos, jnp.float32),
-                          furniture=jnp.asarray(scene.slot_furniture[slot], jnp.int32),
-                          relation=jnp.asarray(scene.slot_relation[slot], jnp.int32))
+    return pos, Placement(
+        active=jnp.ones((batch, scene.num_objects), bool),
+        pos=jnp.asarray(pos, jnp.float32),
+        furniture=jnp.asarray(scene.slot_furniture[slot], jnp.int32),
+        relation=jnp.asarray(scene.slot_relation[slot], jnp.int32),
+    )

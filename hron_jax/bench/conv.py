@@ -36,8 +36,11 @@ def bench_conv(batch: int = 128, size: int = 32, steps: int = 8, repeats: int = 
         @nn.compact
         def __call__(self, x):
             for f, k, s in layers:
-                conv = (PatchConv(f, k, s) if self.patch else
-                        nn.Conv(f, (k, k), (s, s), padding="SAME", kernel_init=RELU_INIT))
+                conv = (
+                    PatchConv(f, k, s)
+                    if self.patch
+                    else nn.Conv(f, (k, k), (s, s), padding="SAME", kernel_init=RELU_INIT)
+                )
                 x = nn.relu(conv(x))
             return x
 
@@ -51,6 +54,7 @@ def bench_conv(batch: int = 128, size: int = 32, steps: int = 8, repeats: int = 
             def body(p, xb):
                 g = jax.grad(loss)(p, xb)
                 return jax.tree.map(lambda a, b: a - 1e-6 * b, p, g), None
+
             return jax.lax.scan(body, p, xs, unroll=unroll)[0]
 
         row = dict(conv=name)
@@ -69,8 +73,12 @@ def add_args(p: argparse.ArgumentParser) -> None:
 
 
 def run(a: argparse.Namespace) -> None:
-    print(f"RGB-D conv stack fwd+grad, batch {a.batch}, {a.size}x{a.size}x4, {a.steps} steps per call",
-          flush=True)
-    stream_table("| conv | ms / step in lax.scan | ms / step unrolled |\n| --- | ---: | ---: |",
-                 bench_conv(a.batch, a.size, a.steps, a.repeats),
-                 lambda r: f"| {r['conv']} | {r['scan']:.1f} | {r['unrolled']:.1f} |")
+    print(
+        f"RGB-D conv stack fwd+grad, batch {a.batch}, {a.size}x{a.size}x4, {a.steps} steps per call",
+        flush=True,
+    )
+    stream_table(
+        "| conv | ms / step in lax.scan | ms / step unrolled |\n| --- | ---: | ---: |",
+        bench_conv(a.batch, a.size, a.steps, a.repeats),
+        lambda r: f"| {r['conv']} | {r['scan']:.1f} | {r['unrolled']:.1f} |",
+    )

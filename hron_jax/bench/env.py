@@ -39,8 +39,10 @@ def synthetic_house_xml(n_boxes: int = 300, seed: int = 0, rooms: int = 3) -> st
     size = 4.0
     L = rooms * size
     cats = ["kitchen", "living_room", "bedroom", "office", "bathroom", "dining_room", "corridor"]
-    out = ['<mujoco model="synthetic_house"><compiler angle="degree"/>',
-           '<asset><material name="plain" rgba="1 1 1 1"/></asset><worldbody>']
+    out = [
+        '<mujoco model="synthetic_house"><compiler angle="degree"/>',
+        '<asset><material name="plain" rgba="1 1 1 1"/></asset><worldbody>',
+    ]
     k_room = {}
     for i in range(rooms):
         for j in range(rooms):
@@ -48,17 +50,22 @@ def synthetic_house_xml(n_boxes: int = 300, seed: int = 0, rooms: int = 3) -> st
             k = k_room.setdefault(c, 0)
             k_room[c] += 1
             cx, cy = (i + 0.5) * size, (j + 0.5) * size
-            out.append(f'<body name="room:{c}:{k}"><geom type="box" pos="{cx} {cy} -0.025" '
-                       f'size="{size / 2} {size / 2} 0.025" rgba="0.7 0.6 0.5 1"/></body>')
+            out.append(
+                f'<body name="room:{c}:{k}"><geom type="box" pos="{cx} {cy} -0.025" '
+                f'size="{size / 2} {size / 2} 0.025" rgba="0.7 0.6 0.5 1"/></body>'
+            )
     nb = 0
-    for i in range(rooms + 1):      # grid lines x = i * size and y = i * size
-        for j in range(rooms):      # one room side per (line, cell); interior sides get a 1 m door
+    for i in range(rooms + 1):  # grid lines x = i * size and y = i * size
+        for j in range(rooms):  # one room side per (line, cell); interior sides get a 1 m door
             b0, b1 = j * size, (j + 1) * size
             spans = [(b0, b1)] if i in (0, rooms) else [(b0, b0 + size / 2 - 0.5), (b0 + size / 2 + 0.5, b1)]
             for lo, hi in spans:
                 mid, half = (lo + hi) / 2, (hi - lo) / 2 + 0.05
                 a = i * size
-                for pos, sz in ((f"{mid} {a} 1.25", f"{half} 0.05 1.25"), (f"{a} {mid} 1.25", f"0.05 {half} 1.25")):
+                for pos, sz in (
+                    (f"{mid} {a} 1.25", f"{half} 0.05 1.25"),
+                    (f"{a} {mid} 1.25", f"0.05 {half} 1.25"),
+                ):
                     out.append(f'<geom type="box" pos="{pos}" size="{sz}" rgba="0.9 0.9 0.85 1"/>')
                     nb += 1
     k_f = 0
@@ -66,18 +73,23 @@ def synthetic_house_xml(n_boxes: int = 300, seed: int = 0, rooms: int = 3) -> st
         x, y = rng.uniform(0.8, L - 0.8, 2)
         yaw = rng.choice([0.0, 90.0, rng.uniform(0, 180)])
         w, dpt, h = rng.uniform(0.3, 0.8), rng.uniform(0.2, 0.5), rng.uniform(0.4, 1.0)
-        parts = [(0, 0, h, w, dpt, 0.02)] + [(sx * (w - 0.03), sy * (dpt - 0.03), h / 2, 0.03, 0.03, h / 2)
-                                             for sx in (-1, 1) for sy in (-1, 1)]
+        parts = [(0, 0, h, w, dpt, 0.02)] + [
+            (sx * (w - 0.03), sy * (dpt - 0.03), h / 2, 0.03, 0.03, h / 2) for sx in (-1, 1) for sy in (-1, 1)
+        ]
         out.append(f'<body name="furniture:table:{k_f}" pos="{x:.3f} {y:.3f} 0" euler="0 0 {yaw:.1f}">')
         for px, py, pz, hx, hy, hz in parts:
-            out.append(f'<geom type="box" pos="{px:.3f} {py:.3f} {pz:.3f}" size="{hx:.3f} {hy:.3f} {hz:.3f}" '
-                       f'rgba="0.5 0.35 0.2 1"/>')
+            out.append(
+                f'<geom type="box" pos="{px:.3f} {py:.3f} {pz:.3f}" size="{hx:.3f} {hy:.3f} {hz:.3f}" '
+                f'rgba="0.5 0.35 0.2 1"/>'
+            )
         out.append('</body>')
         nb += len(parts)
         k_f += 1
     for k in range(4):
-        out.append(f'<body name="object:apple:{k}" mocap="true" pos="{k} 0 -5"><geom type="sphere" '
-                   f'size="0.045" rgba="0.8 0.1 0.1 1"/></body>')
+        out.append(
+            f'<body name="object:apple:{k}" mocap="true" pos="{k} 0 -5"><geom type="sphere" '
+            f'size="0.045" rgba="0.8 0.1 0.1 1"/></body>'
+        )
     out.append("</worldbody></mujoco>")
     return "\n".join(out)
 
@@ -85,6 +97,7 @@ def synthetic_house_xml(n_boxes: int = 300, seed: int = 0, rooms: int = 3) -> st
 def _free_poses(sim, n: int, rng: np.random.Generator) -> np.ndarray:
     """n random (x, y, yaw) where the agent's capsule touches no blocker (native collision check)."""
     import mujoco
+
     m = sim.mj_model
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
@@ -108,6 +121,7 @@ class _Native:
 
         from .. import sensors as SN
         from .. import sim as S
+
         self.mujoco, self.sim, self.cam = mujoco, sim, cam
         self.m = sim.mj_model
         self.datas = []
@@ -131,8 +145,13 @@ class _Native:
         mj = self.mujoco
         q = d.qpos[self.sim.qpos_adr]
         c, s = np.cos(q[2]), np.sin(q[2])
-        delta = [np.array([c, s, 0]) * self.fwd, -np.array([c, s, 0]) * self.fwd,
-                 np.array([0, 0, self.turn]), np.array([0, 0, -self.turn]), np.zeros(3)][action]
+        delta = [
+            np.array([c, s, 0]) * self.fwd,
+            -np.array([c, s, 0]) * self.fwd,
+            np.array([0, 0, self.turn]),
+            np.array([0, 0, -self.turn]),
+            np.zeros(3),
+        ][action]
         for cn in self.ctrl:
             d.ctrl[:] = delta * cn
             mj.mj_step(self.m, d)
@@ -143,12 +162,30 @@ class _Native:
         x, y, yaw = d.qpos[self.sim.qpos_adr]
         p = np.radians(cfg.pitch_deg)
         cy, sy = np.cos(yaw), np.sin(yaw)
-        rot = np.stack([[sy, -cy, 0.0], [-cy * np.sin(p), -sy * np.sin(p), np.cos(p)],
-                        [cy * np.cos(p), sy * np.cos(p), np.sin(p)]], 1)
+        rot = np.stack(
+            [
+                [sy, -cy, 0.0],
+                [-cy * np.sin(p), -sy * np.sin(p), np.cos(p)],
+                [cy * np.cos(p), sy * np.cos(p), np.sin(p)],
+            ],
+            1,
+        )
         o = np.array([x + cfg.forward_offset * cy, y + cfg.forward_offset * sy, cfg.mount_height])
         vec = (self.dirs_cam @ rot.T).ravel()
-        self.mujoco.mj_multiRay(self.m, d, o, vec, None, 1, self.sim.agent_body, self.gid, self.dist,
-                                None, self.nray, cfg.max_depth)
+        self.mujoco.mj_multiRay(
+            self.m,
+            d,
+            o,
+            vec,
+            None,
+            1,
+            self.sim.agent_body,
+            self.gid,
+            self.dist,
+            None,
+            self.nray,
+            cfg.max_depth,
+        )
         hit = (self.gid >= 0) & (self.dist <= cfg.max_depth)
         g = np.where(hit, self.gid, 0)
         depth = np.where(hit, self.dist, cfg.max_depth)
@@ -156,6 +193,7 @@ class _Native:
 
     def time(self, actions: np.ndarray, what: str, repeats: int) -> float:
         """Best seconds per env step over the (T, B) actions."""
+
         def run():
             for row in actions:
                 for d, a in zip(self.datas, row):
@@ -163,12 +201,22 @@ class _Native:
                         self.physics(d, int(a))
                     if what in ("render", "env"):
                         self.render(d)
+
         return best_time(run, repeats) / actions.size
 
 
-def bench_env(scene_path: str | None, num_envs=(1, 16, 64), steps: int = 20, repeats: int = 3,
-              width: int = 32, height: int = 32, backends=("kernel", "kernel-nocull", "mjx"),
-              native_envs: int = 8, seed: int = 0, log=progress):
+def bench_env(
+    scene_path: str | None,
+    num_envs=(1, 16, 64),
+    steps: int = 20,
+    repeats: int = 3,
+    width: int = 32,
+    height: int = 32,
+    backends=("kernel", "kernel-nocull", "mjx"),
+    native_envs: int = 8,
+    seed: int = 0,
+    log=progress,
+):
     """Yields rows {num_envs, what, s_per_batch, steps_per_s, native_steps_per_s, ratio}, each as
     soon as it is measured (see the module docstring)."""
     import jax
@@ -181,6 +229,7 @@ def bench_env(scene_path: str | None, num_envs=(1, 16, 64), steps: int = 20, rep
         sim = Simulator.from_file(scene_path)
         try:
             from ..scenes import load_scene
+
             scene = load_scene(scene_path)
         except Exception:  # unannotated file: generic tables
             scene = None
@@ -188,10 +237,13 @@ def bench_env(scene_path: str | None, num_envs=(1, 16, 64), steps: int = 20, rep
         sim = Simulator.from_xml(synthetic_house_xml())
         scene = None
     m = sim.mj_model
-    print(f"scene: {scene_path or 'synthetic_house_xml()'}: {m.ngeom} geoms "
-          f"({np.bincount(m.geom_type, minlength=7)[[6, 2, 3]].tolist()} box/sphere/capsule), "
-          f"{len(sim.blockers)} blockers, MJX max_geom_pairs K={sim.max_geom_pairs}, "
-          f"{sim.config.substeps} substeps/step", flush=True)
+    print(
+        f"scene: {scene_path or 'synthetic_house_xml()'}: {m.ngeom} geoms "
+        f"({np.bincount(m.geom_type, minlength=7)[[6, 2, 3]].tolist()} box/sphere/capsule), "
+        f"{len(sim.blockers)} blockers, MJX max_geom_pairs K={sim.max_geom_pairs}, "
+        f"{sim.config.substeps} substeps/step",
+        flush=True,
+    )
     rng = np.random.default_rng(seed)
     base = SN.CameraConfig(width=width, height=height)
     n_box = int((m.geom_type == 6).sum())
@@ -206,20 +258,30 @@ def bench_env(scene_path: str | None, num_envs=(1, 16, 64), steps: int = 20, rep
         else:
             raise ValueError(f"unknown backend {b!r}")
         cams[b] = SN.Camera.for_simulator(sim, cfg, scene=scene)
-    print(f"camera: {width}x{height}, vfov {base.vfov_deg} deg, max_depth {base.max_depth} m, "
-          f"k_box {base.k_box}", flush=True)
+    print(
+        f"camera: {width}x{height}, vfov {base.vfov_deg} deg, max_depth {base.max_depth} m, "
+        f"k_box {base.k_box}",
+        flush=True,
+    )
 
     # random inputs drawn in a fixed order (per B: poses, actions; then native), native timed first
-    inputs = [(B, _free_poses(sim, B, rng), rng.integers(0, 5, size=(steps, B)).astype(np.int32))
-              for B in num_envs]
+    inputs = [
+        (B, _free_poses(sim, B, rng), rng.integers(0, 5, size=(steps, B)).astype(np.int32)) for B in num_envs
+    ]
     nat = _Native(sim, cams[backends[0]], _free_poses(sim, native_envs, rng))
     nat_acts = rng.integers(0, 5, size=(max(steps // 2, 2), native_envs))
     nat_t = {w: nat.time(nat_acts, w, repeats) for w in ("physics", "render", "env")}
 
     def row(B, what, s_per_batch, kind):
         sps, native = B / s_per_batch, 1.0 / nat_t[kind]
-        return dict(num_envs=B, what=what, s_per_batch=s_per_batch, steps_per_s=sps,
-                    native_steps_per_s=native, ratio=sps / native)
+        return dict(
+            num_envs=B,
+            what=what,
+            s_per_batch=s_per_batch,
+            steps_per_s=sps,
+            native_steps_per_s=native,
+            ratio=sps / native,
+        )
 
     phys = jax.jit(jax.vmap(sim.step))
     init = jax.jit(jax.vmap(sim.init))
@@ -234,6 +296,7 @@ def bench_env(scene_path: str | None, num_envs=(1, 16, 64), steps: int = 20, rep
             for a in acts:
                 d = phys(d, jnp.asarray(a))
             return d
+
         yield row(B, "physics (MJX)", best_time(lambda: run_phys(d0), repeats) / steps, "physics")
         d_end = run_phys(d0)
         p_end = pose_fn(d_end)
@@ -241,7 +304,10 @@ def bench_env(scene_path: str | None, num_envs=(1, 16, 64), steps: int = 20, rep
         for b, cam in cams.items():
             rend = jax.jit(jax.vmap(cam.render))
             out, t_c = timed(lambda: rend(d_end, p_end))
-            log(f"B={B}: render/{b} compile {t_c:.1f} s, uncertain rays {int(np.asarray(out.uncertain).sum())}")
+            log(
+                f"B={B}: render/{b} compile {t_c:.1f} s, "
+                f"uncertain rays {int(np.asarray(out.uncertain).sum())}"
+            )
             yield row(B, f"render/{b}", time_calls(rend, [(d_end, p_end)] * steps, repeats), "render")
 
             def run_env(d):
@@ -249,37 +315,57 @@ def bench_env(scene_path: str | None, num_envs=(1, 16, 64), steps: int = 20, rep
                     d = phys(d, jnp.asarray(a))
                     o = rend(d, pose_fn(d))
                 return d, o
+
             yield row(B, f"env/{b}", best_time(lambda: run_env(d0), repeats) / steps, "env")
 
     # native MuJoCo reference (single core, Python loop over envs), measured above
-    for w, what in (("physics", "native physics (mj_step loop)"), ("render", "native render (mj_multiRay)"),
-                    ("env", "native env")):
+    for w, what in (
+        ("physics", "native physics (mj_step loop)"),
+        ("render", "native render (mj_multiRay)"),
+        ("env", "native env"),
+    ):
         yield row(native_envs, what, nat_t[w] * native_envs, w)
 
 
-HEADER = ("| num_envs | what | ms / batch step | env steps / s | native steps / s | ratio |\n"
-          "| ---: | --- | ---: | ---: | ---: | ---: |")
+HEADER = (
+    "| num_envs | what | ms / batch step | env steps / s | native steps / s | ratio |\n"
+    "| ---: | --- | ---: | ---: | ---: | ---: |"
+)
 
 
 def format_row(r: dict) -> str:
-    return (f"| {r['num_envs']} | {r['what']} | {1e3 * r['s_per_batch']:.1f} | "
-            f"{r['steps_per_s']:.0f} | {r['native_steps_per_s']:.0f} | {r['ratio']:.2f} |")
+    return (
+        f"| {r['num_envs']} | {r['what']} | {1e3 * r['s_per_batch']:.1f} | "
+        f"{r['steps_per_s']:.0f} | {r['native_steps_per_s']:.0f} | {r['ratio']:.2f} |"
+    )
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scene", default=DEFAULT_SCENE if os.path.exists(DEFAULT_SCENE) else None,
-                   help="scene file (default scenes/house.xml); 'synthetic' for a ~300-box house")
+    p.add_argument(
+        "--scene",
+        default=DEFAULT_SCENE if os.path.exists(DEFAULT_SCENE) else None,
+        help="scene file (default scenes/house.xml); 'synthetic' for a ~300-box house",
+    )
     p.add_argument("--num-envs", type=int, nargs="+", default=[1, 16, 64])
     p.add_argument("--steps", type=int, default=20, help="timed calls per measurement")
     p.add_argument("--repeats", type=int, default=3, help="best of this many timed runs")
     p.add_argument("--width", type=int, default=32)
     p.add_argument("--height", type=int, default=32)
-    p.add_argument("--backends", nargs="+", default=["kernel", "kernel-nocull", "mjx"],
-                   choices=["kernel", "kernel-nocull", "mjx"])
+    p.add_argument(
+        "--backends",
+        nargs="+",
+        default=["kernel", "kernel-nocull", "mjx"],
+        choices=["kernel", "kernel-nocull", "mjx"],
+    )
     p.add_argument("--native-envs", type=int, default=8)
 
 
 def run(a: argparse.Namespace) -> None:
     scene = None if a.scene in (None, "synthetic") else a.scene
-    stream_table(HEADER, bench_env(scene, tuple(a.num_envs), a.steps, a.repeats, a.width, a.height,
-                                   tuple(a.backends), a.native_envs), format_row)
+    stream_table(
+        HEADER,
+        bench_env(
+            scene, tuple(a.num_envs), a.steps, a.repeats, a.width, a.height, tuple(a.backends), a.native_envs
+        ),
+        format_row,
+    )

@@ -41,12 +41,16 @@ def _episode_inputs(scene, num_envs: int, rng: np.random.Generator):
     d = mujoco.MjData(m)
     xpos, xmat = [], []
     for b in range(num_envs):
-        d.mocap_pos[scene.mocap_id[scene.num_rooms + scene.num_furniture:]] = pos[b]
+        d.mocap_pos[scene.mocap_id[scene.num_rooms + scene.num_furniture :]] = pos[b]
         mujoco.mj_forward(m, d)
         xpos.append(d.geom_xpos.copy())
         xmat.append(d.geom_xmat.copy())
-    return (jnp.asarray(poses, jnp.float32), placement, jnp.asarray(np.stack(xpos), jnp.float32),
-            jnp.asarray(np.stack(xmat), jnp.float32))
+    return (
+        jnp.asarray(poses, jnp.float32),
+        placement,
+        jnp.asarray(np.stack(xpos), jnp.float32),
+        jnp.asarray(np.stack(xmat), jnp.float32),
+    )
 
 
 def _time(fn, state, args, reps: int) -> float:
@@ -60,8 +64,14 @@ def _time(fn, state, args, reps: int) -> float:
     return float(np.median(times))
 
 
-def bench_graph(scene_path: str = DEFAULT_SCENE, num_envs: int = 64, width: int = 32, height: int = 32,
-                reps: int = 30, seed: int = 0):
+def bench_graph(
+    scene_path: str = DEFAULT_SCENE,
+    num_envs: int = 64,
+    width: int = 32,
+    height: int = 32,
+    reps: int = 30,
+    seed: int = 0,
+):
     """Yields rows {stage, num_envs, ms_per_batch, us_per_env_step, env_steps_per_s} for render /
     graph / map, each as soon as it is measured."""
     scene = load_scene(scene_path)
@@ -79,6 +89,7 @@ def bench_graph(scene_path: str = DEFAULT_SCENE, num_envs: int = 64, width: int 
         def one(d, pl, p, i, z):
             d = gb.update(d, pl, p, i, z)
             return d, gb.graph(d, pl, p)
+
         return jax.vmap(one)(disc, placement, poses, instance, depth)
 
     @jax.jit
@@ -86,29 +97,46 @@ def bench_graph(scene_path: str = DEFAULT_SCENE, num_envs: int = 64, width: int 
         def one(k, p, z, s):
             k = mm.update(k, p, z, s)
             return k, mm.observe(k, p)
+
         return jax.vmap(one)(key, poses, depth, semantic)
 
     disc0 = jax.vmap(gb.reset)(placement, poses)
     key0 = jnp.broadcast_to(mm.reset(), (num_envs,) + mm.shape)
-    stages = ((f"render {width}x{height} (camera, reference)",
-               lambda: _time(lambda s, *a: (s, render(*a)), None, (xpos, xmat, poses), reps)),
-              (f"graph update+graph (N={gb.max_nodes}, E={gb.max_edges})",
-               lambda: _time(graph_step, disc0, (placement, poses, frames.instance, frames.depth), reps)),
-              (f"map update+observe (grid {mm.shape[0]}x{mm.shape[1]}, crop {mm.config.crop})",
-               lambda: _time(map_step, key0, (poses, frames.depth, frames.semantic), reps)))
+    stages = (
+        (
+            f"render {width}x{height} (camera, reference)",
+            lambda: _time(lambda s, *a: (s, render(*a)), None, (xpos, xmat, poses), reps),
+        ),
+        (
+            f"graph update+graph (N={gb.max_nodes}, E={gb.max_edges})",
+            lambda: _time(graph_step, disc0, (placement, poses, frames.instance, frames.depth), reps),
+        ),
+        (
+            f"map update+observe (grid {mm.shape[0]}x{mm.shape[1]}, crop {mm.config.crop})",
+            lambda: _time(map_step, key0, (poses, frames.depth, frames.semantic), reps),
+        ),
+    )
     for stage, measure in stages:
         t = measure()
-        yield dict(stage=stage, num_envs=num_envs, ms_per_batch=1e3 * t,
-                   us_per_env_step=1e6 * t / num_envs, env_steps_per_s=num_envs / t)
+        yield dict(
+            stage=stage,
+            num_envs=num_envs,
+            ms_per_batch=1e3 * t,
+            us_per_env_step=1e6 * t / num_envs,
+            env_steps_per_s=num_envs / t,
+        )
 
 
-HEADER = ("| stage | num_envs | ms / batch step | us / env step | env steps / s |\n"
-          "| --- | --- | --- | --- | --- |")
+HEADER = (
+    "| stage | num_envs | ms / batch step | us / env step | env steps / s |\n| --- | --- | --- | --- | --- |"
+)
 
 
 def format_row(r: dict) -> str:
-    return (f"| {r['stage']} | {r['num_envs']} | {r['ms_per_batch']:.2f} | "
-            f"{r['us_per_env_step']:.1f} | {r['env_steps_per_s']:.0f} |")
+    return (
+        f"| {r['stage']} | {r['num_envs']} | {r['ms_per_batch']:.2f} | "
+        f"{r['us_per_env_step']:.1f} | {r['env_steps_per_s']:.0f} |"
+    )
 
 
 def add_args(p: argparse.ArgumentParser) -> None:

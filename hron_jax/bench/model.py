@@ -46,23 +46,34 @@ def model_inputs(batch: int = 64, scene_path: str = DEFAULT_SCENE, image: int = 
     gb = GraphBuilder(scene, GraphConfig())
     _, placement = random_placement(scene, batch, rng)
     lo, hi = scene.bounds[0, :2], scene.bounds[1, :2]
-    poses = jnp.asarray(np.concatenate([rng.uniform(lo, hi, (batch, 2)),
-                                        rng.uniform(-np.pi, np.pi, (batch, 1))], -1), jnp.float32)
+    poses = jnp.asarray(
+        np.concatenate([rng.uniform(lo, hi, (batch, 2)), rng.uniform(-np.pi, np.pi, (batch, 1))], -1),
+        jnp.float32,
+    )
     disc = jnp.broadcast_to(gb.real, (batch, gb.max_nodes))
     graph = jax.jit(jax.vmap(gb.graph))(disc, placement, poses)
     cat = np.asarray(graph.nodes["category"])
     pick = rng.integers(0, gb.max_nodes, (batch, 3))
     goal = np.zeros((batch, GL.GOAL_DIM), np.float32)
     goal[np.arange(batch)[:, None], rng.integers(0, GL.GOAL_DIM, (batch, 3))] = 1.0
-    obs = dict(graph=graph, goal=jnp.asarray(goal),
-               goal_classes=jnp.asarray(np.take_along_axis(cat, pick, 1), jnp.int32),
-               rgbd=jnp.asarray(rng.random((batch, image, image, 4)), jnp.float32),
-               map=jnp.asarray(rng.random((batch, image, image, 3)), jnp.float32))
+    obs = dict(
+        graph=graph,
+        goal=jnp.asarray(goal),
+        goal_classes=jnp.asarray(np.take_along_axis(cat, pick, 1), jnp.int32),
+        rgbd=jnp.asarray(rng.random((batch, image, image, 4)), jnp.float32),
+        map=jnp.asarray(rng.random((batch, image, image, 3)), jnp.float32),
+    )
     return obs, gb
 
 
-def bench_model(variants=VARIANTS, batch: int = 64, reps: int = 20, scene_path: str = DEFAULT_SCENE,
-                seed: int = 0, log=print) -> list[dict]:
+def bench_model(
+    variants=VARIANTS,
+    batch: int = 64,
+    reps: int = 20,
+    scene_path: str = DEFAULT_SCENE,
+    seed: int = 0,
+    log=print,
+) -> list[dict]:
     """Rows {variant, fwd_ms, grad_ms, fwd_cpu_ms, grad_cpu_ms, compile_s} at `batch` (see the
     module docstring)."""
     import jax
@@ -71,20 +82,26 @@ def bench_model(variants=VARIANTS, batch: int = 64, reps: int = 20, scene_path: 
     from ..models import make_model
 
     obs, gb = model_inputs(batch, scene_path, seed=seed)
-    log(f"batch {batch}: N={gb.max_nodes} nodes, E={gb.max_edges} edges "
-        f"(live {int(np.asarray(obs['graph'].edges['mask']).sum()) / batch:.0f}/graph)")
+    log(
+        f"batch {batch}: N={gb.max_nodes} nodes, E={gb.max_edges} edges "
+        f"(live {int(np.asarray(obs['graph'].edges['mask']).sum()) / batch:.0f}/graph)"
+    )
     one = jax.tree.map(lambda a: a[0], obs)
     fns = {}
     for name in variants:
         model = make_model(name, 5)
         shapes = jax.eval_shape(model.init, jax.random.PRNGKey(0), one)
         r = np.random.default_rng(seed)
-        variables = jax.tree.map(lambda s: jnp.asarray(
-            r.standard_normal(s.shape) / np.sqrt(max(int(np.prod(s.shape[:-1])), 1)), s.dtype), shapes)
+        variables = jax.tree.map(
+            lambda s: jnp.asarray(
+                r.standard_normal(s.shape) / np.sqrt(max(int(np.prod(s.shape[:-1])), 1)), s.dtype
+            ),
+            shapes,
+        )
 
         def loss(v, o, model=model):
             logits, value = model.apply(v, o)
-            return jnp.sum(jax.nn.log_softmax(logits)[:, 0]) + jnp.sum(value ** 2)
+            return jnp.sum(jax.nn.log_softmax(logits)[:, 0]) + jnp.sum(value**2)
 
         fwd, grad = jax.jit(model.apply), jax.jit(jax.value_and_grad(loss))
         _, t = timed(lambda: (fwd(variables, obs), grad(variables, obs)))
@@ -99,20 +116,32 @@ def bench_model(variants=VARIANTS, batch: int = 64, reps: int = 20, scene_path: 
                 times[name][i].append(t)
                 times[name][2 + i].append(time.process_time() - c)
     med = lambda name, i: 1e3 * float(np.median(times[name][i]))  # noqa: E731
-    return [dict(variant=name, fwd_ms=med(name, 0), grad_ms=med(name, 1), fwd_cpu_ms=med(name, 2),
-                 grad_cpu_ms=med(name, 3), compile_s=fns[name][3]) for name in variants]
+    return [
+        dict(
+            variant=name,
+            fwd_ms=med(name, 0),
+            grad_ms=med(name, 1),
+            fwd_cpu_ms=med(name, 2),
+            grad_cpu_ms=med(name, 3),
+            compile_s=fns[name][3],
+        )
+        for name in variants
+    ]
 
 
 def format_model_rows(rows: list[dict], batch: int) -> str:
     ref = {r["variant"]: r for r in rows}.get("gcn")
-    lines = [f"| variant | forward ms (B={batch}) | fwd+grad ms (B={batch}) | fwd / gcn | grad / gcn "
-             "| fwd CPU-ms | fwd+grad CPU-ms | compile s |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines = [
+        f"| variant | forward ms (B={batch}) | fwd+grad ms (B={batch}) | fwd / gcn | grad / gcn "
+        "| fwd CPU-ms | fwd+grad CPU-ms | compile s |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
     for r in rows:
-        rel = (f"{r['fwd_ms'] / ref['fwd_ms']:.2f} | {r['grad_ms'] / ref['grad_ms']:.2f}" if ref
-               else "- | -")
-        lines.append(f"| {r['variant']} | {r['fwd_ms']:.1f} | {r['grad_ms']:.1f} | {rel} | "
-                     f"{r['fwd_cpu_ms']:.0f} | {r['grad_cpu_ms']:.0f} | {r['compile_s']:.1f} |")
+        rel = f"{r['fwd_ms'] / ref['fwd_ms']:.2f} | {r['grad_ms'] / ref['grad_ms']:.2f}" if ref else "- | -"
+        lines.append(
+            f"| {r['variant']} | {r['fwd_ms']:.1f} | {r['grad_ms']:.1f} | {rel} | "
+            f"{r['fwd_cpu_ms']:.0f} | {r['grad_cpu_ms']:.0f} | {r['compile_s']:.1f} |"
+        )
     return "\n".join(lines)
 
 

@@ -7,23 +7,19 @@ choice: hron_jax.envs.choice.ChoiceEnv; options are ChoiceConfig fields; no scen
 directed / exploratory: hron_jax.envs.navigation.NavigationEnv; scene is a path or a loaded Scene
 (default scenes/symmetric_room.xml and scenes/house.xml of this repository); options are NavConfig
 fields, plus `image_size=S` as a shortcut for a square S x S camera (other camera settings:
-`camera=CameraConfig(...)`). TASKS / NAV_TASKS / DEFAULT_SCENES are the one home of those names.
+`camera=CameraConfig(...)`). TASKS / NAV_TASKS are the one home of the task names.
 """
+
 from __future__ import annotations
 
 import dataclasses
-import os
 
 from hron_jax.envs.base import AutoResetWrapper, Env, EnvState
 from hron_jax.envs.choice import ChoiceConfig, ChoiceEnv
-from hron_jax.paths import SCENE_DIR
+from hron_jax.paths import DEFAULT_SCENES
 
 NAV_TASKS = ('directed', 'exploratory')
 TASKS = ('choice',) + NAV_TASKS
-DEFAULT_SCENES = {
-    'directed': os.path.join(SCENE_DIR, 'symmetric_room.xml'),
-    'exploratory': os.path.join(SCENE_DIR, 'house.xml'),
-}
 
 
 def env_config(task: str, **options):
@@ -35,13 +31,15 @@ def env_config(task: str, **options):
         raise TypeError("pass the task as the first argument, not as an option")
     if task == 'choice':
         return _replace(ChoiceConfig(), options, 'the choice task')
-    from hron_jax.envs.navigation import NavConfig   # deferred: MuJoCo / MJX
+    from hron_jax.envs.navigation import NavConfig  # deferred: MuJoCo / MJX
+
     options = dict(options)
     size = options.pop('image_size', None)
     config = _replace(NavConfig(task=task), options, f'the {task} task')
     if size is not None:
-        config = dataclasses.replace(config, camera=dataclasses.replace(
-            config.camera, width=int(size), height=int(size)))
+        config = dataclasses.replace(
+            config, camera=dataclasses.replace(config.camera, width=int(size), height=int(size))
+        )
     return config
 
 
@@ -62,10 +60,21 @@ def make_env(task: str, scene=None, config=None, **options):
             raise ValueError('the choice task has no scene')
         return ChoiceEnv(config)
     from hron_jax.envs.navigation import NavigationEnv
+
     if config.task != task:
         raise ValueError(f'config is for the {config.task} task, not {task}')
     return NavigationEnv(DEFAULT_SCENES[task] if scene is None else scene, config)
 
 
-__all__ = ['make_env', 'env_config', 'TASKS', 'NAV_TASKS', 'DEFAULT_SCENES', 'Env', 'EnvState', 'AutoResetWrapper',
-           'ChoiceEnv', 'ChoiceConfig']
+__all__ = [
+    'make_env',
+    'env_config',
+    'TASKS',
+    'NAV_TASKS',
+    'DEFAULT_SCENES',
+    'Env',
+    'EnvState',
+    'AutoResetWrapper',
+    'ChoiceEnv',
+    'ChoiceConfig',
+]

@@ -31,6 +31,7 @@ can bootstrap the value of a truncated episode from its real last state (learner
 one frame per step and the pre-reset one only on demand); hron_jax.ppo then does not wrap it.
 Rollouts of any env under a policy: hron_jax.rollout.
 """
+
 from __future__ import annotations
 
 from typing import Any, Protocol, runtime_checkable
@@ -87,8 +88,19 @@ def initial_state(obs, inner, info: dict | None = None) -> EnvState:
     return EnvState(obs=obs, reward=zero, done=zero, metrics=metrics, info=base_info, inner=inner)
 
 
-def next_state(prev: EnvState, obs, inner, reward, terminated, *, success=0.0, spl=None,
-               path_length=0.0, max_steps: int | None = None, info: dict | None = None) -> EnvState:
+def next_state(
+    prev: EnvState,
+    obs,
+    inner,
+    reward,
+    terminated,
+    *,
+    success=0.0,
+    spl=None,
+    path_length=0.0,
+    max_steps: int | None = None,
+    info: dict | None = None,
+) -> EnvState:
     """State after one step, with the shared bookkeeping done here so every task agrees.
 
     terminated: a terminal event of the task (success, failure); the time limit is *not* one: pass

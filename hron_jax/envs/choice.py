@@ -27,6 +27,7 @@ Observation (one env):
 
 ``render(state)`` draws one env's scene with matplotlib (uint8[H, W, 3], for docs, not jittable).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -54,10 +55,10 @@ RECTANGLE_IDX = V.index('furniture', 'rectangle')
 _RECT_W = (0.30, 0.60)
 _RECT_H = (0.10, 0.25)
 _CIRCLE_R = (0.06, 0.12)
-_GAP = (0.0, 0.04)          # vertical gap between circle and rectangle
-_MARGIN = 0.05              # keep shapes off the canvas border and the centre line
-_GRID = 12                  # distractor cells per axis
-_TRI = (0.07, 0.12)         # triangle bounding-box side
+_GAP = (0.0, 0.04)  # vertical gap between circle and rectangle
+_MARGIN = 0.05  # keep shapes off the canvas border and the centre line
+_GRID = 12  # distractor cells per axis
+_TRI = (0.07, 0.12)  # triangle bounding-box side
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,8 +81,8 @@ class ChoiceConfig:
 
 @struct.dataclass
 class ChoiceInner:
-    above_side: jax.Array      # i32: half (0 left, 1 right) whose circle is above its rectangle
-    goal_above: jax.Array      # bool: goal relation is "above" (onTop), else "below" (under)
+    above_side: jax.Array  # i32: half (0 left, 1 right) whose circle is above its rectangle
+    goal_above: jax.Array  # bool: goal relation is "above" (onTop), else "below" (under)
     correct_action: jax.Array  # i32
     num_distractors: jax.Array  # i32
 
@@ -106,8 +107,12 @@ def _pair(key, side, above):
     rect_y = jnp.where(above, y0 + h / 2, y0 + pair_h - h / 2)
     circ_y = jnp.where(above, y0 + pair_h - r, y0 + r)
     zero = jnp.zeros((), jnp.float32)
-    return (jnp.stack([cx, circ_y, zero]), jnp.stack([2 * r, 2 * r, zero]),
-            jnp.stack([rx, rect_y, zero]), jnp.stack([w, h, zero]))
+    return (
+        jnp.stack([cx, circ_y, zero]),
+        jnp.stack([2 * r, 2 * r, zero]),
+        jnp.stack([rx, rect_y, zero]),
+        jnp.stack([w, h, zero]),
+    )
 
 
 def _distractors(key, core_pos, core_size, max_n):
@@ -116,11 +121,11 @@ def _distractors(key, core_pos, core_size, max_n):
     cell = 2.0 / _GRID
     centres = -1.0 + cell * (jnp.arange(_GRID, dtype=jnp.float32) + 0.5)
     cx, cy = jnp.meshgrid(centres, centres, indexing='xy')
-    cells = jnp.stack([cx.ravel(), cy.ravel()], -1)                          # [C, 2]
+    cells = jnp.stack([cx.ravel(), cy.ravel()], -1)  # [C, 2]
     # A cell is blocked when its square overlaps a core bounding box grown by a small margin.
-    half = core_size[:, :2] / 2 + 0.02                                       # [4, 2]
+    half = core_size[:, :2] / 2 + 0.02  # [4, 2]
     overlap = jnp.all(jnp.abs(cells[:, None, :] - core_pos[None, :, :2]) < half[None] + cell / 2, -1)
-    free = ~jnp.any(overlap, -1)                                              # [C]
+    free = ~jnp.any(overlap, -1)  # [C]
     n = jax.random.randint(k_n, (), 0, max_n + 1)
     n = jnp.minimum(n, free.sum())
     # Free cells first, in random order; take the first max_n, of which the first n are used.
@@ -139,8 +144,8 @@ def _distractors(key, core_pos, core_size, max_n):
 def _rasterise(nodes, size_px):
     """f32[S, S, 3] image of the canvas: circles, rectangles, upward triangles on white."""
     centres = -1.0 + (2.0 / size_px) * (jnp.arange(size_px, dtype=jnp.float32) + 0.5)
-    px, py = jnp.meshgrid(centres, centres[::-1], indexing='xy')             # row 0 = top (y = +1)
-    p = jnp.stack([px, py], -1)[:, :, None, :]                                # [S, S, 1, 2]
+    px, py = jnp.meshgrid(centres, centres[::-1], indexing='xy')  # row 0 = top (y = +1)
+    p = jnp.stack([px, py], -1)[:, :, None, :]  # [S, S, 1, 2]
     c = nodes['pos'][None, None, :, :2]
     half = nodes['size'][None, None, :, :2] / 2
     d = p - c
@@ -150,17 +155,24 @@ def _rasterise(nodes, size_px):
     # Upward triangle: full width at the bottom of its box, apex at the top.
     frac = (d[..., 1] + half[..., 1]) / jnp.maximum(2 * half[..., 1], 1e-6)
     in_tri = (jnp.abs(d[..., 1]) <= half[..., 1]) & (jnp.abs(d[..., 0]) <= half[..., 0] * (1 - frac))
-    inside = jnp.where(cat == CIRCLE_CLASS, in_circle,
-                       jnp.where(cat == TRIANGLE_CLASS, in_tri, in_rect)) & nodes['mask']
-    colours = jnp.asarray(np.stack([
-        np.array(V.OBJECT_SHAPES['circle'].rgba[:3]),
-        np.array(V.FURNITURE_RGBA['rectangle'][:3]),
-        np.array(V.OBJECT_SHAPES['triangle'].rgba[:3]),
-    ]), jnp.float32)
+    inside = (
+        jnp.where(cat == CIRCLE_CLASS, in_circle, jnp.where(cat == TRIANGLE_CLASS, in_tri, in_rect))
+        & nodes['mask']
+    )
+    colours = jnp.asarray(
+        np.stack(
+            [
+                np.array(V.OBJECT_SHAPES['circle'].rgba[:3]),
+                np.array(V.FURNITURE_RGBA['rectangle'][:3]),
+                np.array(V.OBJECT_SHAPES['triangle'].rgba[:3]),
+            ]
+        ),
+        jnp.float32,
+    )
     kind = jnp.where(cat == CIRCLE_CLASS, 0, jnp.where(cat == RECTANGLE_CLASS, 1, 2))
-    node_rgb = colours[kind]                                                  # [N, 3]
+    node_rgb = colours[kind]  # [N, 3]
     # Later nodes paint over earlier ones; shapes never overlap, so the order does not matter.
-    idx = jnp.max(jnp.where(inside, jnp.arange(cat.shape[0]), -1), -1)        # [S, S]
+    idx = jnp.max(jnp.where(inside, jnp.arange(cat.shape[0]), -1), -1)  # [S, S]
     return jnp.where((idx >= 0)[..., None], node_rgb[jnp.maximum(idx, 0)], 1.0)
 
 
@@ -179,8 +191,7 @@ class ChoiceEnv:
         above_side = jnp.asarray(above_side, jnp.int32)
         goal_above = jnp.asarray(goal_above, bool)
         k_left, k_right, k_dis, k_perm = jax.random.split(rng, 4)
-        pairs = [_pair(k, side, above_side == side)
-                 for k, side in ((k_left, LEFT), (k_right, RIGHT))]
+        pairs = [_pair(k, side, above_side == side) for k, side in ((k_left, LEFT), (k_right, RIGHT))]
         # Core node order before shuffling: circle L, rectangle L, circle R, rectangle R.
         core_pos = jnp.stack([pairs[0][0], pairs[0][2], pairs[1][0], pairs[1][2]])
         core_size = jnp.stack([pairs[0][1], pairs[0][3], pairs[1][1], pairs[1][3]])
@@ -214,13 +225,22 @@ class ChoiceEnv:
         n = cfg.num_nodes
         order = jnp.argsort(jax.random.uniform(k_perm, (n,)) + 2.0 * (~mask))  # new slot -> old
         inv = jnp.zeros(n, jnp.int32).at[order].set(jnp.arange(n, dtype=jnp.int32))  # old -> new
-        nodes = {'category': cat[order], 'node_type': ntype[order], 'pos': pos[order],
-                 'size': size[order], 'mask': mask[order]}
+        nodes = {
+            'category': cat[order],
+            'node_type': ntype[order],
+            'pos': pos[order],
+            'size': size[order],
+            'mask': mask[order],
+        }
         graph = jraph.GraphsTuple(
             nodes=nodes,
             edges={'edge_type': edge_type, 'mask': jnp.ones(4, bool)},
-            senders=inv[senders], receivers=inv[receivers], globals=None,
-            n_node=jnp.array([n], jnp.int32), n_edge=jnp.array([4], jnp.int32))
+            senders=inv[senders],
+            receivers=inv[receivers],
+            globals=None,
+            n_node=jnp.array([n], jnp.int32),
+            n_edge=jnp.array([4], jnp.int32),
+        )
 
         relation = jnp.where(goal_above, V.ON_TOP, V.UNDER)
         obs = {
@@ -233,8 +253,12 @@ class ChoiceEnv:
             obs['depth'] = jnp.ones((cfg.image_size, cfg.image_size, 1), jnp.float32)
         # Goal above -> the half whose circle is above; goal below -> the other half.
         correct = jnp.where(goal_above, above_side, 1 - above_side).astype(jnp.int32)
-        inner = ChoiceInner(above_side=above_side, goal_above=goal_above, correct_action=correct,
-                            num_distractors=n_dis.astype(jnp.int32))
+        inner = ChoiceInner(
+            above_side=above_side,
+            goal_above=goal_above,
+            correct_action=correct,
+            num_distractors=n_dis.astype(jnp.int32),
+        )
         return initial_state(obs, inner)
 
     # -- API -------------------------------------------------------------------------------------
@@ -256,6 +280,7 @@ class ChoiceEnv:
 def render(state: EnvState, size_px: int = 256) -> np.ndarray:
     """uint8[H, W, 3] matplotlib drawing of one (unbatched) choice env state, with its goal."""
     import matplotlib
+
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     from matplotlib import patches
@@ -275,16 +300,26 @@ def render(state: EnvState, size_px: int = 256) -> np.ndarray:
         if c == CIRCLE_CLASS:
             ax.add_patch(patches.Circle((x, y), w / 2, color=V.OBJECT_SHAPES['circle'].rgba))
         elif c == RECTANGLE_CLASS:
-            ax.add_patch(patches.Rectangle((x - w / 2, y - h / 2), w, h,
-                                           color=V.FURNITURE_RGBA['rectangle']))
+            ax.add_patch(patches.Rectangle((x - w / 2, y - h / 2), w, h, color=V.FURNITURE_RGBA['rectangle']))
         else:
-            ax.add_patch(patches.Polygon([(x - w / 2, y - h / 2), (x + w / 2, y - h / 2), (x, y + h / 2)],
-                                         color=V.OBJECT_SHAPES['triangle'].rgba))
+            ax.add_patch(
+                patches.Polygon(
+                    [(x - w / 2, y - h / 2), (x + w / 2, y - h / 2), (x, y + h / 2)],
+                    color=V.OBJECT_SHAPES['triangle'].rgba,
+                )
+            )
     obj, rel, fur, _ = goals.decode_goal(state.obs['goal'])
     word = {'onTop': 'above', 'under': 'below'}.get(rel, rel)
-    ax.text(0.0, 0.97, f'goal: {obj} {word} {fur}', ha='center', va='top', fontsize=8,
-            bbox=dict(facecolor='white', edgecolor='0.6', pad=2),
-            transform=ax.transData)
+    ax.text(
+        0.0,
+        0.97,
+        f'goal: {obj} {word} {fur}',
+        ha='center',
+        va='top',
+        fontsize=8,
+        bbox=dict(facecolor='white', edgecolor='0.6', pad=2),
+        transform=ax.transData,
+    )
     fig.canvas.draw()
     img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     plt.close(fig)

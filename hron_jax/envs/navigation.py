@@ -45,6 +45,7 @@ Shapes of the env state: `NavInner` (below); info adds 'final' (FinalInputs).
 Determinism: everything is a function of the reset key (the env's own key in inner.rng is split
 at every step), so a fixed seed reproduces rollouts exactly, batched or not.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -60,6 +61,7 @@ from flax import struct
 
 from hron_jax import geodesic as G
 from hron_jax import goals as goal_lib
+from hron_jax import sim as S
 from hron_jax.envs import NAV_TASKS
 from hron_jax.envs import placement as P
 from hron_jax.envs.base import EnvState, initial_state, next_state, select_tree
@@ -67,8 +69,6 @@ from hron_jax.graph_builder import GraphBuilder, GraphConfig, Placement
 from hron_jax.metric_map import MapConfig, MetricMap
 from hron_jax.scenes.loader import Scene, load_scene
 from hron_jax.sensors import Camera, CameraConfig
-from hron_jax import sim as S
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,13 +79,13 @@ class NavConfig:
     max_steps: int = 500
     success_distance: float = 1.0
     success_reward: float = 10.0
-    wrong_penalty: float = 5.0        # directed only
+    wrong_penalty: float = 5.0  # directed only
     shaping_scale: float = 1.0
     distractors: bool = False
     num_distractors: int = 6
-    min_start_distance: float = 1.0   # exploratory: geodesic d0 of a start must exceed this (m)
+    min_start_distance: float = 1.0  # exploratory: geodesic d0 of a start must exceed this (m)
     metric_map: bool = False
-    premap: bool = False              # graph (and map) start with rooms + furniture discovered
+    premap: bool = False  # graph (and map) start with rooms + furniture discovered
     auto_reset: bool = True
     camera: CameraConfig = CameraConfig(width=32, height=32)
     sim: S.SimConfig = S.SimConfig()
@@ -102,28 +102,28 @@ class NavConfig:
 
 @struct.dataclass
 class NavInner:
-    data: Any                 # mjx.Data of the simulator
-    placement: Placement      # pool objects of this episode
-    goal: jax.Array           # i32[4] vocabulary indices (room -1 in the directed task)
-    target: jax.Array         # i32 pool entry
-    target_xy: jax.Array      # f32[2]
-    target_field: jax.Array   # i32 row of the precomputed fields
-    wrong_xy: jax.Array       # f32[2] directed task's wrong object (inf: none)
-    discovered: jax.Array     # bool[N_MAX] graph builder state
-    map_key: Any              # i32[Hg, Wg] metric map state, or None
-    dist: jax.Array           # f32 geodesic distance to the success region now (m)
-    d0: jax.Array             # f32 the same at reset
-    path_length: jax.Array    # f32 xy distance travelled this episode (m)
-    rng: jax.Array            # this env's key for future resets
+    data: Any  # mjx.Data of the simulator
+    placement: Placement  # pool objects of this episode
+    goal: jax.Array  # i32[4] vocabulary indices (room -1 in the directed task)
+    target: jax.Array  # i32 pool entry
+    target_xy: jax.Array  # f32[2]
+    target_field: jax.Array  # i32 row of the precomputed fields
+    wrong_xy: jax.Array  # f32[2] directed task's wrong object (inf: none)
+    discovered: jax.Array  # bool[N_MAX] graph builder state
+    map_key: Any  # i32[Hg, Wg] metric map state, or None
+    dist: jax.Array  # f32 geodesic distance to the success region now (m)
+    d0: jax.Array  # f32 the same at reset
+    path_length: jax.Array  # f32 xy distance travelled this episode (m)
+    rng: jax.Array  # this env's key for future resets
 
 
 class FinalInputs(NamedTuple):
     """What rendering the pre-reset observation of a step needs (the static geoms do not move, so
     only the geom positions of that episode's objects differ from the returned state's data)."""
 
-    geom_xpos: jax.Array      # f32[ngeom, 3]
-    pose: jax.Array           # f32[3]
-    discovered: jax.Array     # before the final frame
+    geom_xpos: jax.Array  # f32[ngeom, 3]
+    pose: jax.Array  # f32[3]
+    discovered: jax.Array  # before the final frame
     map_key: Any
     placement: Placement
     goal: jax.Array
@@ -152,16 +152,24 @@ class NavigationEnv:
         self.sim = S.Simulator.from_file(scene.path, config.sim)
         self.camera = Camera.for_simulator(self.sim, config.camera, scene=scene)
         self.graph_builder = GraphBuilder(scene, config.graph, premap=config.premap)
-        self.metric_map = (MetricMap(scene, config.camera, config.map, premap=config.premap)
-                           if config.metric_map else None)
-        self.tables = P.build_tables(scene, self.sim.mj_model, config.placement,
-                                     success_distance=config.success_distance,
-                                     agent_radius=config.sim.radius, agent_height=config.sim.height)
+        self.metric_map = (
+            MetricMap(scene, config.camera, config.map, premap=config.premap) if config.metric_map else None
+        )
+        self.tables = P.build_tables(
+            scene,
+            self.sim.mj_model,
+            config.placement,
+            success_distance=config.success_distance,
+            agent_radius=config.sim.radius,
+            agent_height=config.sim.height,
+        )
         if config.task == 'exploratory' and not self.tables.goal_ok.any():
             raise ValueError(f'{scene.path}: no satisfiable goal')
         if config.task == 'directed' and len(self.tables.pairs) == 0:
-            raise ValueError(f'{scene.path}: no directed pair (same furniture category on both halves '
-                             'of x = centre with different relations); use a symmetric scene')
+            raise ValueError(
+                f'{scene.path}: no directed pair (same furniture category on both halves '
+                'of x = centre with different relations); use a symmetric scene'
+            )
         off = scene.num_rooms + scene.num_furniture
         self._pool_mocap = np.asarray(scene.mocap_id[off:], np.int32)
         self._parked = np.asarray(self.sim.default_mocap_pos, np.float32)
@@ -193,11 +201,18 @@ class NavigationEnv:
     def reset_to(self, episode: P.Episode, rng) -> EnvState:
         """Start a given episode (hand-built situations: edit a sampled Episode, e.g. its pose)."""
         start = self._start(episode)
-        obs, disc, mkey = self._observe(start.data, episode.pose, start.discovered, start.map_key,
-                                        episode.placement, episode.goal)
+        obs, disc, mkey = self._observe(
+            start.data, episode.pose, start.discovered, start.map_key, episode.placement, episode.goal
+        )
         inner = self._inner(start, disc, mkey, rng)
-        final = FinalInputs(start.data.geom_xpos, episode.pose, start.discovered, start.map_key,
-                            episode.placement, episode.goal)
+        final = FinalInputs(
+            start.data.geom_xpos,
+            episode.pose,
+            start.discovered,
+            start.map_key,
+            episode.placement,
+            episode.goal,
+        )
         return initial_state(obs, inner, info={'final': final})
 
     def step(self, state: EnvState, action) -> EnvState:
@@ -213,8 +228,9 @@ class NavigationEnv:
         dist = jnp.where(jnp.isfinite(dist), dist, inner.dist)
         success = jnp.linalg.norm(pose[:2] - inner.target_xy) < cfg.success_distance
         wrong = (jnp.linalg.norm(pose[:2] - inner.wrong_xy) < cfg.success_distance) & ~success
-        reward = (cfg.shaping_scale * (inner.dist - dist) + cfg.success_reward * success
-                  - cfg.wrong_penalty * wrong)
+        reward = (
+            cfg.shaping_scale * (inner.dist - dist) + cfg.success_reward * success - cfg.wrong_penalty * wrong
+        )
         terminated = success | wrong
         spl = success * inner.d0 / jnp.maximum(inner.d0, path)
         # The same truncation rule as base.next_state, needed here before rendering.
@@ -222,8 +238,9 @@ class NavigationEnv:
         done = terminated | (steps >= cfg.max_steps)
 
         cont = inner.replace(data=data, dist=dist, path_length=path)
-        final = FinalInputs(data.geom_xpos, pose, inner.discovered, inner.map_key, inner.placement,
-                            inner.goal)
+        final = FinalInputs(
+            data.geom_xpos, pose, inner.discovered, inner.map_key, inner.placement, inner.goal
+        )
         rng = inner.rng
         if cfg.auto_reset:
             rng, k_ep = jax.random.split(rng)
@@ -234,11 +251,22 @@ class NavigationEnv:
             view_pose = jnp.where(done, ep.pose, pose)
         else:
             nxt, view_pose = cont, pose
-        obs, disc, mkey = self._observe(nxt.data, view_pose, nxt.discovered, nxt.map_key,
-                                        nxt.placement, nxt.goal)
+        obs, disc, mkey = self._observe(
+            nxt.data, view_pose, nxt.discovered, nxt.map_key, nxt.placement, nxt.goal
+        )
         nxt = nxt.replace(discovered=disc, map_key=mkey, rng=rng)
-        out = next_state(state, obs, nxt, reward, terminated, success=success, spl=spl,
-                         path_length=path, max_steps=cfg.max_steps, info={'final': final})
+        out = next_state(
+            state,
+            obs,
+            nxt,
+            reward,
+            terminated,
+            success=success,
+            spl=spl,
+            path_length=path,
+            max_steps=cfg.max_steps,
+            info={'final': final},
+        )
         if cfg.auto_reset:
             info = dict(out.info)
             for k in ('steps', 'episode_return'):
@@ -268,8 +296,11 @@ class NavigationEnv:
         on first use (also from inside a trace) in the same dtype as the task's fields."""
         t = self.tables
         with jax.ensure_compile_time_eval():
-            f = P.success_fields(t.grid, jnp.asarray(t.point_xy),
-                                 self.config.success_distance - self.config.placement.robust_margin)
+            f = P.success_fields(
+                t.grid,
+                jnp.asarray(t.point_xy),
+                self.config.success_distance - self.config.placement.robust_margin,
+            )
             return np.asarray(f).astype(t.fields.dtype)
 
     def _distance(self, field_index, xy):
@@ -290,10 +321,21 @@ class NavigationEnv:
 
     def _inner(self, start: _Start, disc, mkey, rng) -> NavInner:
         ep = start.episode
-        return NavInner(data=start.data, placement=ep.placement, goal=ep.goal, target=ep.target,
-                        target_xy=ep.target_xy, target_field=ep.target_field, wrong_xy=ep.wrong_xy,
-                        discovered=disc, map_key=mkey, dist=start.dist, d0=start.dist,
-                        path_length=jnp.zeros((), jnp.float32), rng=rng)
+        return NavInner(
+            data=start.data,
+            placement=ep.placement,
+            goal=ep.goal,
+            target=ep.target,
+            target_xy=ep.target_xy,
+            target_field=ep.target_field,
+            wrong_xy=ep.wrong_xy,
+            discovered=disc,
+            map_key=mkey,
+            dist=start.dist,
+            d0=start.dist,
+            path_length=jnp.zeros((), jnp.float32),
+            rng=rng,
+        )
 
     def _observe(self, data, pose, discovered, map_key, placement, goal):
         """Render one frame and fold it into the graph (and map): (obs, discovered, map_key)."""
@@ -319,6 +361,7 @@ class NavigationEnv:
 # Reference policies and rollouts
 # ------------------------------------------------------------------------------------------------
 
+
 def oracle_policy(env: NavigationEnv, state: EnvState, rng=None) -> jax.Array:
     """Shortest-path follower (geodesic.oracle_action): turn toward the descent direction of the
     target's geodesic field (a look-ahead point on the shortest path), move forward once within
@@ -334,8 +377,7 @@ def oracle_policy(env: NavigationEnv, state: EnvState, rng=None) -> jax.Array:
     inner: NavInner = state.inner
     pose = env.sim.agent_pose(inner.data)
     f = jnp.asarray(env.oracle_fields)[inner.target_field].astype(jnp.float32)
-    code = G.oracle_action(f, env.tables.grid, pose[:2], pose[2],
-                           turn=math.radians(env.sim.config.turn_deg))
+    code = G.oracle_action(f, env.tables.grid, pose[:2], pose[2], turn=math.radians(env.sim.config.turn_deg))
     table = jnp.array([S.FORWARD, S.TURN_LEFT, S.TURN_RIGHT, S.STOP], jnp.int32)
     return table[code]
 
@@ -344,6 +386,8 @@ def pose_record(env):
     """`record` hook of hron_jax.rollout.unroll for a navigation env: per step the agent pose
     before the step ('pose' f32[3]), after it but before any auto-reset ('final_pose'), and the
     episode's geodesic start distance ('d0', what SPL divides by)."""
+
     def record(state, action, extras, nxt):
         return dict(pose=env.agent_pose(state), final_pose=nxt.info['final'].pose, d0=state.inner.d0)
+
     return record

@@ -19,8 +19,8 @@ point p rests at z = support + h_z, i.e. exactly on the support surface and, sin
 height for a fitting object, within the clearance of inside / under slots. Points are deduplicated
 across slots (slots stacked on one piece of furniture often share xy), and for each unique point
 `success_fields` (geodesic.target_fields, minus seeds that cannot reach the disk) gives the distance
-field to its success region (free cells within `success_distance` of it), stored as `field_dtype` (float16 by default: at most ~1 cm of rounding
-below 16 m, half the memory of float32).
+field to its success region (free cells within `success_distance` of it), stored as `field_dtype`
+(float16 by default: at most ~1 cm of rounding below 16 m, half the memory of float32).
 
 Reachability: the "main" free space is what the agent can reach from the scene's `start:0` site
 (or, without one, from the most central free cell of the largest room). A candidate point is usable
@@ -56,6 +56,7 @@ Episode fields (O = scene.num_objects pool entries in node order, pool entry j =
     wrong       i32 pool entry of the directed task's wrong object (-1: none); wrong_xy f32[2]
     pose        f32[3] agent start (x, y, yaw)
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -82,16 +83,16 @@ class PlacementConfig:
     simulator (NavConfig.success_distance, SimConfig.radius / height) and are passed to
     `build_tables` from there, so each lives in one place."""
 
-    slot_grid: int = 2              # candidate points per slot = slot_grid ** 2
-    robust_margin: float = 0.25     # m; a usable target has a main free cell this far inside its disk
-    cell_size: float = 0.1          # occupancy grid (m)
+    slot_grid: int = 2  # candidate points per slot = slot_grid ** 2
+    robust_margin: float = 0.25  # m; a usable target has a main free cell this far inside its disk
+    cell_size: float = 0.1  # occupancy grid (m)
     # The grid is inflated by the capsule radius + clearance: contacts (2 cm margin) keep the capsule
     # 0-3 cm off surfaces, and cells free on a grid inflated by the bare radius but not physically
     # reachable became false minima of the fields (measured: an oracle stuck 2.5 cm outside the
     # success disk in a dead end next to a wall whose other side held the target).
     clearance: float = 0.03
-    field_dtype: str = 'float16'    # 'float16' | 'float32' (bfloat16 is too coarse: 12 cm at 16 m)
-    stencil: int = 48               # geodesic stencil (see hron_jax.geodesic)
+    field_dtype: str = 'float16'  # 'float16' | 'float32' (bfloat16 is too coarse: 12 cm at 16 m)
+    stencil: int = 48  # geodesic stencil (see hron_jax.geodesic)
 
 
 class Episode(NamedTuple):
@@ -112,29 +113,29 @@ class EpisodeTables:
     """Static per-scene tables (numpy; they become constants under jit). See build_tables."""
 
     grid: G.OccupancyGrid
-    point_xy: np.ndarray        # f32[P, 2] unique candidate target points
-    fields: np.ndarray          # f16/f32[P, H, W] geodesic distance to each point's success region
-    slot_point: np.ndarray      # i32[S, K] point index of each slot's candidates (0 where unused)
-    slot_point_ok: np.ndarray   # bool[S, K] candidate exists and its success region is reachable
-    slot_usable: np.ndarray     # bool[S, NUM_OBJ] the object fits the slot and it has a usable point
-    slot_support: np.ndarray    # f32[S] z of the support surface (slot bottom)
+    point_xy: np.ndarray  # f32[P, 2] unique candidate target points
+    fields: np.ndarray  # f16/f32[P, H, W] geodesic distance to each point's success region
+    slot_point: np.ndarray  # i32[S, K] point index of each slot's candidates (0 where unused)
+    slot_point_ok: np.ndarray  # bool[S, K] candidate exists and its success region is reachable
+    slot_usable: np.ndarray  # bool[S, NUM_OBJ] the object fits the slot and it has a usable point
+    slot_support: np.ndarray  # f32[S] z of the support surface (slot bottom)
     slot_furniture: np.ndarray  # i32[S] furniture node
-    slot_relation: np.ndarray   # i32[S]
-    slot_furn_cat: np.ndarray   # i32[S] furniture vocabulary index
-    slot_room_cat: np.ndarray   # i32[S] room vocabulary index of the furniture's room
-    goals: np.ndarray           # i32[Q, 4] the scene's goal table
-    goal_ok: np.ndarray         # bool[Q] satisfiable (some slot usable for the goal's object)
-    goal_slots: np.ndarray      # bool[Q, S] usable slots realising each goal
-    pairs: np.ndarray           # i32[P2, 3] directed pairs (object, left slot, right slot)
-    obj_cat: np.ndarray         # i32[O] object vocabulary index of each pool entry
-    obj_half: np.ndarray        # f32[O, 3] half extents of each pool entry
-    room_cell: np.ndarray       # i32[H*W] room of each reachable free cell, -1 elsewhere
-    room_cells: np.ndarray      # i32[R', C] flat cells of each room that has main free cells (padded)
-    room_ncells: np.ndarray     # i32[R'] how many
+    slot_relation: np.ndarray  # i32[S]
+    slot_furn_cat: np.ndarray  # i32[S] furniture vocabulary index
+    slot_room_cat: np.ndarray  # i32[S] room vocabulary index of the furniture's room
+    goals: np.ndarray  # i32[Q, 4] the scene's goal table
+    goal_ok: np.ndarray  # bool[Q] satisfiable (some slot usable for the goal's object)
+    goal_slots: np.ndarray  # bool[Q, S] usable slots realising each goal
+    pairs: np.ndarray  # i32[P2, 3] directed pairs (object, left slot, right slot)
+    obj_cat: np.ndarray  # i32[O] object vocabulary index of each pool entry
+    obj_half: np.ndarray  # f32[O, 3] half extents of each pool entry
+    room_cell: np.ndarray  # i32[H*W] room of each reachable free cell, -1 elsewhere
+    room_cells: np.ndarray  # i32[R', C] flat cells of each room that has main free cells (padded)
+    room_ncells: np.ndarray  # i32[R'] how many
     point_far_cell: np.ndarray  # i32[P] the main cell farthest (geodesically) from each point
     num_rooms: int
-    start_pose: np.ndarray      # f32[3] start:0 (x, y, yaw), or the reference cell with yaw 0
-    reach: np.ndarray           # f32[H, W] geodesic distance from the reference point (diagnostics)
+    start_pose: np.ndarray  # f32[3] start:0 (x, y, yaw), or the reference cell with yaw 0
+    reach: np.ndarray  # f32[H, W] geodesic distance from the reference point (diagnostics)
 
     @property
     def num_points(self) -> int:
@@ -166,8 +167,7 @@ def _reachable_init(grid: G.OccupancyGrid, target_xy, success_radius: float):
 
 
 @partial(jax.jit, static_argnames=('success_radius', 'stencil'))
-def success_fields(grid: G.OccupancyGrid, targets_xy, success_radius: float = 1.0, *,
-                   stencil: int = 48):
+def success_fields(grid: G.OccupancyGrid, targets_xy, success_radius: float = 1.0, *, stencil: int = 48):
     """f32[N, H, W] geodesic distance (m) to the success disk of each target xy f32[N, 2]; as
     geodesic.target_fields but with _reachable_init (the inits are built one target at a time to
     keep memory at one grid of segment samples)."""
@@ -180,7 +180,7 @@ def _slot_points(scene: Scene, n: int) -> tuple[np.ndarray, np.ndarray]:
     half = V.OBJECT_HALF
     frac = (2.0 * (np.arange(n) + 0.5) / n - 1.0) if n > 1 else np.zeros(1)
     fu, fv = np.meshgrid(frac, frac, indexing='ij')
-    frac2 = np.stack([fu.ravel(), fv.ravel()], -1)                       # (K, 2)
+    frac2 = np.stack([fu.ravel(), fv.ravel()], -1)  # (K, 2)
     pts, any_fit = [], []
     for k in range(scene.num_slots):
         fits = [o for o in range(_NUM_OBJ) if np.all(half[o] <= scene.slot_half[k] + 1e-9)]
@@ -208,9 +208,15 @@ def _reference_cell(scene: Scene, grid: G.OccupancyGrid) -> tuple[np.ndarray, fl
     return centres[i, j].astype(np.float64), 0.0
 
 
-def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(), *,
-                 success_distance: float = 1.0, agent_radius: float = 0.2,
-                 agent_height: float = 1.2) -> EpisodeTables:
+def build_tables(
+    scene: Scene,
+    model,
+    config: PlacementConfig = PlacementConfig(),
+    *,
+    success_distance: float = 1.0,
+    agent_radius: float = 0.2,
+    agent_height: float = 1.2,
+) -> EpisodeTables:
     """Host-side precomputation for one scene (see the module docstring).
 
     model: the compiled MuJoCo model the agent moves in (hron_jax.sim.Simulator.mj_model), whose
@@ -219,9 +225,14 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     """
     if config.field_dtype not in ('float16', 'float32'):
         raise ValueError(f"field_dtype must be 'float16' or 'float32', got {config.field_dtype!r}")
-    grid = G.occupancy_grid(model, config=G.GridConfig(
-        cell_size=config.cell_size, agent_radius=agent_radius + config.clearance,
-        agent_height=agent_height))
+    grid = G.occupancy_grid(
+        model,
+        config=G.GridConfig(
+            cell_size=config.cell_size,
+            agent_radius=agent_radius + config.clearance,
+            agent_height=agent_height,
+        ),
+    )
     free = np.asarray(grid.free)
     h, w = free.shape
 
@@ -241,15 +252,15 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     keys = np.round(pts.reshape(-1, 2) * 1000).astype(np.int64)
     uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     point_xy = (uniq / 1000.0).astype(np.float32)
-    fields = np.asarray(success_fields(grid, jnp.asarray(point_xy), success_distance,
-                                       stencil=config.stencil))
+    fields = np.asarray(success_fields(grid, jnp.asarray(point_xy), success_distance, stencil=config.stencil))
     # A point is usable when a main free cell lies robust_margin inside its success disk. Points
     # whose disk meets free space only in a sliver (an object deep under a bed, or behind a wall)
     # need cm-precise final moves that 0.2 m steps and 30 deg turns cannot reliably make.
     centres = np.asarray(grid.centres())[main]
     inner = success_distance - config.robust_margin
-    point_ok = np.array([(np.linalg.norm(centres - q, axis=-1) <= inner).any() for q in point_xy],
-                        bool).reshape(-1)
+    point_ok = np.array(
+        [(np.linalg.norm(centres - q, axis=-1) <= inner).any() for q in point_xy], bool
+    ).reshape(-1)
     slot_point = inv.reshape(s, k).astype(np.int32)
     slot_point_ok = point_ok[slot_point] & any_fit[:, None]
 
@@ -260,8 +271,11 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     slot_room_cat = scene.vocab_index[scene.instance_room[furn]].astype(np.int32)
 
     goals = scene.goals.astype(np.int32).reshape(-1, 4)
-    goal_slots = scene.goal_slots.astype(bool) & slot_usable[:, goals[:, 0]].T if len(goals) else \
-        np.zeros((0, s), bool)
+    goal_slots = (
+        scene.goal_slots.astype(bool) & slot_usable[:, goals[:, 0]].T
+        if len(goals)
+        else np.zeros((0, s), bool)
+    )
     goal_ok = goal_slots.any(1)
 
     off = scene.num_rooms + scene.num_furniture
@@ -289,7 +303,7 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     per_room = [c for c in per_room if len(c)]
     room_cells = np.zeros((len(per_room), max(len(c) for c in per_room)), np.int32)
     for r, c in enumerate(per_room):
-        room_cells[r, :len(c)] = c
+        room_cells[r, : len(c)] = c
     room_ncells = np.array([len(c) for c in per_room], np.int32)
     flat = fields.reshape(len(fields), -1)
     point_far_cell = np.argmax(np.where(main.reshape(-1) & np.isfinite(flat), flat, -1.0), -1)
@@ -297,21 +311,37 @@ def build_tables(scene: Scene, model, config: PlacementConfig = PlacementConfig(
     dtype = np.float16 if config.field_dtype == 'float16' else np.float32
     # Keep inf as inf in float16 (finite distances here are < 65504 m).
     return EpisodeTables(
-        grid=grid, point_xy=point_xy, fields=fields.astype(dtype),
-        slot_point=slot_point, slot_point_ok=slot_point_ok, slot_usable=slot_usable,
+        grid=grid,
+        point_xy=point_xy,
+        fields=fields.astype(dtype),
+        slot_point=slot_point,
+        slot_point_ok=slot_point_ok,
+        slot_usable=slot_usable,
         slot_support=(scene.slot_center[:, 2] - scene.slot_half[:, 2]).astype(np.float32),
-        slot_furniture=furn, slot_relation=scene.slot_relation.astype(np.int32),
-        slot_furn_cat=slot_furn_cat, slot_room_cat=slot_room_cat,
-        goals=goals, goal_ok=goal_ok, goal_slots=goal_slots, pairs=pairs,
-        obj_cat=obj_cat, obj_half=obj_half, room_cell=room_cell, room_cells=room_cells,
-        room_ncells=room_ncells, point_far_cell=point_far_cell.astype(np.int32),
+        slot_furniture=furn,
+        slot_relation=scene.slot_relation.astype(np.int32),
+        slot_furn_cat=slot_furn_cat,
+        slot_room_cat=slot_room_cat,
+        goals=goals,
+        goal_ok=goal_ok,
+        goal_slots=goal_slots,
+        pairs=pairs,
+        obj_cat=obj_cat,
+        obj_half=obj_half,
+        room_cell=room_cell,
+        room_cells=room_cells,
+        room_ncells=room_ncells,
+        point_far_cell=point_far_cell.astype(np.int32),
         num_rooms=scene.num_rooms,
-        start_pose=np.array([ref_xy[0], ref_xy[1], ref_yaw], np.float32), reach=reach)
+        start_pose=np.array([ref_xy[0], ref_xy[1], ref_yaw], np.float32),
+        reach=reach,
+    )
 
 
 # ------------------------------------------------------------------------------------------------
 # Jittable samplers
 # ------------------------------------------------------------------------------------------------
+
 
 def _choice(key, mask):
     """Uniform index among True entries of a bool vector (index 0 if none)."""
@@ -340,15 +370,17 @@ def _object_pos(t: EpisodeTables, entry, slot, xy):
 def _satisfies(t: EpisodeTables, goal):
     """bool[S]: slots where an object of the goal's category satisfies the goal tuple."""
     room_ok = (goal[3] < 0) | (jnp.asarray(t.slot_room_cat) == goal[3])
-    return ((jnp.asarray(t.slot_relation) == goal[1]) & (jnp.asarray(t.slot_furn_cat) == goal[2])
-            & room_ok)
+    return (jnp.asarray(t.slot_relation) == goal[1]) & (jnp.asarray(t.slot_furn_cat) == goal[2]) & room_ok
 
 
 def _place(t: EpisodeTables, pl: Placement, slots, entry, slot, xy):
     pos = _object_pos(t, entry, slot, xy)
-    pl = Placement(active=pl.active.at[entry].set(True), pos=pl.pos.at[entry].set(pos),
-                   furniture=pl.furniture.at[entry].set(jnp.asarray(t.slot_furniture)[slot]),
-                   relation=pl.relation.at[entry].set(jnp.asarray(t.slot_relation)[slot]))
+    pl = Placement(
+        active=pl.active.at[entry].set(True),
+        pos=pl.pos.at[entry].set(pos),
+        furniture=pl.furniture.at[entry].set(jnp.asarray(t.slot_furniture)[slot]),
+        relation=pl.relation.at[entry].set(jnp.asarray(t.slot_relation)[slot]),
+    )
     return pl, slots.at[entry].set(slot)
 
 
@@ -412,8 +444,9 @@ def _start_cell(key, t: EpisodeTables, point, min_distance: float, tries: int = 
     return jnp.where(ok[first], cells[first], jnp.asarray(t.point_far_cell)[point])
 
 
-def sample_exploratory(key, t: EpisodeTables, num_distractors: int = 0,
-                       min_start_distance: float = 1.0) -> Episode:
+def sample_exploratory(
+    key, t: EpisodeTables, num_distractors: int = 0, min_start_distance: float = 1.0
+) -> Episode:
     """One exploratory-task episode (module docstring). num_distractors is static."""
     k_goal, k_slot, k_pt, k_inst, k_dis, k_room, k_yaw = jax.random.split(key, 7)
     q = _choice(k_goal, jnp.asarray(t.goal_ok))
@@ -433,16 +466,26 @@ def sample_exploratory(key, t: EpisodeTables, num_distractors: int = 0,
     cxy = t.grid.cell_to_world(jnp.stack([cell // w, cell % w]))
     yaw = jax.random.uniform(k_yaw, (), jnp.float32, -jnp.pi, jnp.pi)
     pose = jnp.concatenate([cxy, yaw[None]]).astype(jnp.float32)
-    return Episode(placement=pl, slot=slots, goal=goal.astype(jnp.int32), target=target,
-                   target_xy=xy, target_field=p, wrong=jnp.int32(-1),
-                   wrong_xy=jnp.full((2,), jnp.inf, jnp.float32), pose=pose)
+    return Episode(
+        placement=pl,
+        slot=slots,
+        goal=goal.astype(jnp.int32),
+        target=target,
+        target_xy=xy,
+        target_field=p,
+        wrong=jnp.int32(-1),
+        wrong_xy=jnp.full((2,), jnp.inf, jnp.float32),
+        pose=pose,
+    )
 
 
 def sample_directed(key, t: EpisodeTables, num_distractors: int = 0) -> Episode:
     """One directed-task episode (module docstring). num_distractors is static."""
     if t.pairs.shape[0] == 0:
-        raise ValueError('this scene has no directed pairs (same furniture category on both halves '
-                         'with different relations)')
+        raise ValueError(
+            'this scene has no directed pairs (same furniture category on both halves '
+            'with different relations)'
+        )
     k_pair, k_side, k_inst, k_pa, k_pb, k_dis = jax.random.split(key, 6)
     pairs = jnp.asarray(t.pairs)
     pr = pairs[jax.random.randint(k_pair, (), 0, pairs.shape[0])]
@@ -461,14 +504,21 @@ def sample_directed(key, t: EpisodeTables, num_distractors: int = 0) -> Episode:
     target = jnp.where(target_is_a, first, second)
     wrong = jnp.where(target_is_a, second, first)
     t_slot = jnp.where(target_is_a, slot_a, slot_b)
-    goal = jnp.stack([o, jnp.asarray(t.slot_relation)[t_slot], jnp.asarray(t.slot_furn_cat)[t_slot],
-                      jnp.int32(-1)]).astype(jnp.int32)
+    goal = jnp.stack(
+        [o, jnp.asarray(t.slot_relation)[t_slot], jnp.asarray(t.slot_furn_cat)[t_slot], jnp.int32(-1)]
+    ).astype(jnp.int32)
     s_idx = jnp.arange(t.slot_point.shape[0])
     used = (s_idx == slot_a) | (s_idx == slot_b)
     exclude = (jnp.arange(cat.shape[0]) == first) | (jnp.arange(cat.shape[0]) == second)
     pl, slots = _distractors(k_dis, t, pl, slots, used, goal, exclude, num_distractors)
-    return Episode(placement=pl, slot=slots, goal=goal, target=target,
-                   target_xy=jnp.where(target_is_a, xy_a, xy_b),
-                   target_field=jnp.where(target_is_a, p_a, p_b), wrong=wrong,
-                   wrong_xy=jnp.where(target_is_a, xy_b, xy_a),
-                   pose=jnp.asarray(t.start_pose, jnp.float32))
+    return Episode(
+        placement=pl,
+        slot=slots,
+        goal=goal,
+        target=target,
+        target_xy=jnp.where(target_is_a, xy_a, xy_b),
+        target_field=jnp.where(target_is_a, p_a, p_b),
+        wrong=wrong,
+        wrong_xy=jnp.where(target_is_a, xy_b, xy_a),
+        pose=jnp.asarray(t.start_pose, jnp.float32),
+    )

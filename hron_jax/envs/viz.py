@@ -6,8 +6,8 @@ episode's objects (target: star with its success circle; directed wrong object: 
 circle; distractors: dots, goal category ringed), the agent's start (arrow) and trajectory, and the
 goal in the title. Host-side (matplotlib), not jittable.
 """
-from __future__ import annotations
 
+from __future__ import annotations
 
 import jax
 import numpy as np
@@ -20,6 +20,7 @@ from hron_jax.scenes.plot import plot_topdown
 def plot_episode(env, state, poses, path=None, title: str | None = None, ax=None):
     """Draw one episode (state: its first EnvState; poses f32[T, 3]); save to `path` if given."""
     import matplotlib
+
     if ax is None:
         matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -44,8 +45,7 @@ def plot_episode(env, state, poses, path=None, title: str | None = None, ax=None
             ax.plot(x, y, '*', ms=12, color=col, mec='k', zorder=12)
             ax.add_patch(matplotlib.patches.Circle((x, y), r, fill=False, ec='g', lw=1.2, zorder=11))
         else:
-            ax.plot(x, y, 'o', ms=5, color=col, mec='r' if cat == int(goal[0]) else 'k', mew=1.0,
-                    zorder=12)
+            ax.plot(x, y, 'o', ms=5, color=col, mec='r' if cat == int(goal[0]) else 'k', mew=1.0, zorder=12)
     if np.all(np.isfinite(inner.wrong_xy)):
         x, y = inner.wrong_xy
         ax.plot(x, y, 'x', ms=10, color='r', mew=2, zorder=12)

@@ -29,6 +29,16 @@ from hron_jax.models.config import VARIANTS, ModelConfig
 from hron_jax.models.gnn import GCNConv, HGTConv, edge_relations, masked_segment_softmax
 from hron_jax.models.pooling import mean_pool, task_driven_pool
 
-__all__ = ["ActorCritic", "ModelConfig", "VARIANTS", "make_model", "attention_readout",
-           "HGTConv", "GCNConv", "edge_relations", "masked_segment_softmax", "task_driven_pool",
-           "mean_pool"]
+__all__ = [
+    "ActorCritic",
+    "ModelConfig",
+    "VARIANTS",
+    "make_model",
+    "attention_readout",
+    "HGTConv",
+    "GCNConv",
+    "edge_relations",
+    "masked_segment_softmax",
+    "task_driven_pool",
+    "mean_pool",
+]

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import dataclasses
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import flax.linen as nn
 
 from hron_jax.models.config import VARIANTS, ModelConfig
 from hron_jax.models.encoders import MLP, ConvEncoder, SceneGraphEncoder
@@ -36,9 +36,11 @@ def _rgbd(obs):
         return obs["rgbd"]
     if "rgb" in obs and "depth" in obs:
         return jnp.concatenate([obs["rgb"], obs["depth"]], axis=-1)
-    raise KeyError("the model uses the RGB-D branch (use_rgbd=True) but obs has no 'rgbd' "
-                   "(nor 'rgb' + 'depth'); build it with ModelConfig(use_rgbd=False) if the "
-                   "task has no image")
+    raise KeyError(
+        "the model uses the RGB-D branch (use_rgbd=True) but obs has no 'rgbd' "
+        "(nor 'rgb' + 'depth'); build it with ModelConfig(use_rgbd=False) if the "
+        "task has no image"
+    )
 
 
 class _ActorCriticCore(nn.Module):
@@ -53,8 +55,9 @@ class _ActorCriticCore(nn.Module):
         cfg = self.config
         feats = []
         img = None
-        conv = dict(features=cfg.conv_features, kernels=cfg.conv_kernels,
-                    strides=cfg.conv_strides, fc=cfg.cnn_fc)
+        conv = dict(
+            features=cfg.conv_features, kernels=cfg.conv_kernels, strides=cfg.conv_strides, fc=cfg.cnn_fc
+        )
         if cfg.use_rgbd:
             img = ConvEncoder(**conv, name="rgbd_encoder")(_rgbd(obs))
             feats.append(img)
@@ -65,8 +68,11 @@ class _ActorCriticCore(nn.Module):
         if cfg.node_features == "word_vectors" or cfg.goal_encoding == "word_vector":
             word_vectors = load_category_vectors(self.num_classes)
         if cfg.use_graph:
-            feats.append(SceneGraphEncoder(cfg, self.num_classes, name="graph_encoder")(
-                obs["graph"], obs.get("goal_classes"), img, word_vectors))
+            feats.append(
+                SceneGraphEncoder(cfg, self.num_classes, name="graph_encoder")(
+                    obs["graph"], obs.get("goal_classes"), img, word_vectors
+                )
+            )
 
         if cfg.goal_encoding == "one_hot":
             goal = obs["goal"]
@@ -79,8 +85,9 @@ class _ActorCriticCore(nn.Module):
 
         z = MLP(cfg.fusion_fc, name="fusion")(jnp.concatenate(feats, axis=-1))
         logits = MLP(cfg.head_fc, name="policy_hidden")(z)
-        logits = nn.Dense(self.num_actions, kernel_init=nn.initializers.orthogonal(0.01),
-                          name="policy_out")(logits)
+        logits = nn.Dense(self.num_actions, kernel_init=nn.initializers.orthogonal(0.01), name="policy_out")(
+            logits
+        )
         value = MLP(cfg.head_fc, name="value_hidden")(z)
         value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0), name="value_out")(value)
         return logits, value[..., 0]
@@ -106,14 +113,14 @@ class ActorCritic(nn.Module):
             return _ActorCriticCore(self.num_actions, self.num_classes, self.config, name="core")(obs)
         # Any number of leading batch axes ([B], [T, B], ...): flatten them into one, run the
         # network on the whole batch, restore them on the outputs.
-        flat = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + jnp.shape(a)[len(lead):]), obs)
-        logits, value = _ActorCriticCore(self.num_actions, self.num_classes, self.config,
-                                         name="core")(flat)
+        flat = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + jnp.shape(a)[len(lead) :]), obs)
+        logits, value = _ActorCriticCore(self.num_actions, self.num_classes, self.config, name="core")(flat)
         return logits.reshape(lead + logits.shape[1:]), value.reshape(lead)
 
 
-def make_model(name: str, num_actions: int, config: ModelConfig | None = None,
-               num_classes: int | None = None) -> ActorCritic:
+def make_model(
+    name: str, num_actions: int, config: ModelConfig | None = None, num_classes: int | None = None
+) -> ActorCritic:
     """The `ActorCritic` of a named variant (see config.VARIANTS).
 
     name: 'rgbd', 'rgbd_mm', 'rgbd_sg', 'rgbd_sg_attn' (main), 'gcn' (Kipf), 'yang' (Yang et al.).

@@ -69,9 +69,12 @@ class ModelConfig:
     def __post_init__(self):
         if self.heads < 1 or self.hidden % self.heads:
             raise ConfigError("heads", f"must divide hidden = {self.hidden}, got {self.heads}")
-        for field, allowed in (("gnn", ("hgt", "gcn")), ("pooling", ("task", "mean")),
-                               ("node_features", ("learned", "word_vectors")),
-                               ("goal_encoding", ("one_hot", "word_vector"))):
+        for field, allowed in (
+            ("gnn", ("hgt", "gcn")),
+            ("pooling", ("task", "mean")),
+            ("node_features", ("learned", "word_vectors")),
+            ("goal_encoding", ("one_hot", "word_vector")),
+        ):
             if getattr(self, field) not in allowed:
                 raise ConfigError(field, f"expected one of {allowed}, got {getattr(self, field)!r}")
 
@@ -83,16 +86,40 @@ VARIANTS: dict[str, dict] = {
     # RGB-D + metric map: the map branch is a copy of the RGB-D branch's architecture.
     "rgbd_mm": dict(use_graph=False, use_map=True, goal_encoding="one_hot"),
     # RGB-D + scene graph, HGT, mean pooling (the "no attention" ablation).
-    "rgbd_sg": dict(use_graph=True, use_map=False, gnn="hgt", pooling="mean",
-                    node_features="learned", goal_encoding="one_hot"),
+    "rgbd_sg": dict(
+        use_graph=True,
+        use_map=False,
+        gnn="hgt",
+        pooling="mean",
+        node_features="learned",
+        goal_encoding="one_hot",
+    ),
     # Main model: RGB-D + scene graph, HGT, task-driven attention pooling.
-    "rgbd_sg_attn": dict(use_graph=True, use_map=False, gnn="hgt", pooling="task",
-                         node_features="learned", goal_encoding="one_hot"),
+    "rgbd_sg_attn": dict(
+        use_graph=True,
+        use_map=False,
+        gnn="hgt",
+        pooling="task",
+        node_features="learned",
+        goal_encoding="one_hot",
+    ),
     # Kipf et al.: GCN instead of HGT, everything else as the main model (incl. task pooling).
-    "gcn": dict(use_graph=True, use_map=False, gnn="gcn", pooling="task",
-                node_features="learned", goal_encoding="one_hot"),
+    "gcn": dict(
+        use_graph=True,
+        use_map=False,
+        gnn="gcn",
+        pooling="task",
+        node_features="learned",
+        goal_encoding="one_hot",
+    ),
     # Yang et al.: GCN over word-vector node features (+ image code), goal = target word vector,
     # no task-driven attention (their model has none): mean pooling.
-    "yang": dict(use_graph=True, use_map=False, gnn="gcn", pooling="mean",
-                 node_features="word_vectors", goal_encoding="word_vector"),
+    "yang": dict(
+        use_graph=True,
+        use_map=False,
+        gnn="gcn",
+        pooling="mean",
+        node_features="word_vectors",
+        goal_encoding="word_vector",
+    ),
 }

@@ -16,11 +16,11 @@ All modules take ONE observation or a batch of them (leading [B] axis on every i
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import flax.linen as nn
 import numpy as np
 
 from hron_jax import graph_types as gt
@@ -55,8 +55,9 @@ def image_patches(x, k: int, s: int):
     ph, pw = max((ho - 1) * s + k - h, 0), max((wo - 1) * s + k - w, 0)
     x = jnp.pad(x, ((0, 0), (ph // 2, ph - ph // 2), (pw // 2, pw - pw // 2), (0, 0)))
     span_h, span_w = (ho - 1) * s + 1, (wo - 1) * s + 1
-    return jnp.concatenate([x[:, i:i + span_h:s, j:j + span_w:s, :]
-                            for i in range(k) for j in range(k)], axis=-1)
+    return jnp.concatenate(
+        [x[:, i : i + span_h : s, j : j + span_w : s, :] for i in range(k) for j in range(k)], axis=-1
+    )
 
 
 class PatchConv(nn.Module):
@@ -129,9 +130,11 @@ class NodeFeaturizer(nn.Module):
         # Zero the geometry of dead rows before the Dense: garbage there (even NaN) would
         # otherwise poison the kernel's gradient (0 * NaN) although the output is masked.
         geom = jnp.where(mask[..., None], jnp.concatenate([pos, size], -1), 0.0)
-        h = (nn.Embed(self.num_classes, self.features, name="category_embed")(cat)
-             + nn.Embed(gt.NUM_NODE_TYPES, self.features, name="type_embed")(nt)
-             + nn.Dense(self.features, name="geometry")(geom))
+        h = (
+            nn.Embed(self.num_classes, self.features, name="category_embed")(cat)
+            + nn.Embed(gt.NUM_NODE_TYPES, self.features, name="type_embed")(nt)
+            + nn.Dense(self.features, name="geometry")(geom)
+        )
         return jnp.where(mask[..., None], h, 0.0)
 
 
@@ -181,20 +184,21 @@ class SceneGraphEncoder(nn.Module):
 
         if cfg.node_features == "learned":
             h = NodeFeaturizer(self.num_classes, cfg.hidden, name="featurizer")(
-                category, node_type, pos, size, mask)
+                category, node_type, pos, size, mask
+            )
         else:
             code = None
             if image_embedding is not None:
                 code = nn.softmax(nn.Dense(cfg.yang_image_code, name="image_code")(image_embedding))
-            h = WordVectorNodeFeaturizer(cfg.hidden, name="featurizer")(
-                word_vectors, category, mask, code)
+            h = WordVectorNodeFeaturizer(cfg.hidden, name="featurizer")(word_vectors, category, mask, code)
 
         if cfg.gnn == "hgt":
             relation = edge_relations(node_type, senders, receivers, edge_type)
         for i in range(cfg.gnn_layers):
             if cfg.gnn == "hgt":
                 h = HGTConv(cfg.hidden, cfg.heads, name=f"hgt_{i}")(
-                    h, node_type, mask, senders, receivers, relation, edge_mask)
+                    h, node_type, mask, senders, receivers, relation, edge_mask
+                )
             else:
                 h = GCNConv(cfg.hidden, name=f"gcn_{i}")(h, mask, senders, receivers, edge_mask)
             h = nn.relu(h)

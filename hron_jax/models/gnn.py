@@ -27,18 +27,20 @@ from __future__ import annotations
 import functools
 import math
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import flax.linen as nn
 import numpy as np
 
 from hron_jax import graph_types as gt
 
+
 # PyG's Linear/HeteroLinear default: kaiming_uniform(a=sqrt(5)) == U(+-1/sqrt(fan_in)), i.e.
 # variance 1/(3 fan_in). The stacked per-type kernels have leading "batch" axes.
 def _fan_in_uniform(batch_axis=()):
-    return nn.initializers.variance_scaling(1.0 / 3.0, "fan_in", "uniform",
-                                            in_axis=-2, out_axis=-1, batch_axis=batch_axis)
+    return nn.initializers.variance_scaling(
+        1.0 / 3.0, "fan_in", "uniform", in_axis=-2, out_axis=-1, batch_axis=batch_axis
+    )
 
 
 def _bias_uniform(fan_in: int):
@@ -88,7 +90,8 @@ def masked_segment_softmax(logits, live, segment_ids, num_segments):
 # ---------------------------------------------------------------------------------------------
 # HGT internals: nodes grouped by type in blocks, relation transforms per source-type slot
 
-@functools.lru_cache(maxsize=None)
+
+@functools.cache
 def _relation_slots(num_node_types: int, num_relations: int):
     """Static tables mapping relations to per-source-type "slots".
 
@@ -101,14 +104,17 @@ def _relation_slots(num_node_types: int, num_relations: int):
     rel_src is None.
     """
     if (num_node_types, num_relations) != (gt.NUM_NODE_TYPES, gt.NUM_RELATIONS):
-        return (np.tile(np.arange(num_relations, dtype=np.int32), (num_node_types, 1)),
-                np.arange(num_relations, dtype=np.int32), None)
+        return (
+            np.tile(np.arange(num_relations, dtype=np.int32), (num_node_types, 1)),
+            np.arange(num_relations, dtype=np.int32),
+            None,
+        )
     rel_src = np.array([src for src, _, _ in gt.RELATION_TRIPLES], np.int32)
     per_type = [np.nonzero(rel_src == tau)[0] for tau in range(num_node_types)]
     slot_rel = np.full((num_node_types, max(len(p) for p in per_type)), -1, np.int32)
     rel_slot = np.zeros(num_relations, np.int32)
     for tau, rels in enumerate(per_type):
-        slot_rel[tau, :len(rels)] = rels
+        slot_rel[tau, : len(rels)] = rels
         rel_slot[rels] = np.arange(len(rels))
     return slot_rel, rel_slot, rel_src
 
@@ -136,11 +142,12 @@ def _type_blocks(node_type, num_types: int, block: int):
     onehot = (node_type[:, None] == jnp.arange(num_types)).astype(jnp.int32)
     padded = (jnp.sum(onehot, 0) + block - 1) // block * block
     end = jnp.cumsum(padded)
-    rank = jnp.sum(jnp.cumsum(onehot, 0) * onehot, 1) - 1        # rank among the nodes of its type
+    rank = jnp.sum(jnp.cumsum(onehot, 0) * onehot, 1) - 1  # rank among the nodes of its type
     pos = (end - padded)[node_type] + rank
     nb = -(-(m + num_types * (block - 1)) // block)
-    src = jnp.full((nb * block,), m, jnp.int32).at[pos].set(
-        jnp.arange(m, dtype=jnp.int32), unique_indices=True)
+    src = (
+        jnp.full((nb * block,), m, jnp.int32).at[pos].set(jnp.arange(m, dtype=jnp.int32), unique_indices=True)
+    )
     blk_type = jnp.minimum(jnp.sum(jnp.arange(nb)[:, None] * block >= end[None, :], 1), num_types - 1)
     return pos, src, blk_type, nb
 
@@ -156,7 +163,7 @@ def _slot_kernels(rel_kernel, slot_rel):
     r, h, d, _ = rel_kernel.shape
     t, s = slot_rel.shape
     padded = jnp.concatenate([rel_kernel, jnp.zeros((1, h, d, d), rel_kernel.dtype)])
-    w = padded[np.where(slot_rel >= 0, slot_rel, r)]                     # [T, S, H, D, D]
+    w = padded[np.where(slot_rel >= 0, slot_rel, r)]  # [T, S, H, D, D]
     return w.transpose(0, 2, 3, 1, 4).reshape(t, h, d, s * d)
 
 
@@ -189,23 +196,24 @@ def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mas
     x0 = jnp.where(node_mask[:, None], x, 0.0)
     xb = jnp.concatenate([x0, jnp.zeros((1, f_in), x0.dtype)])[src].reshape(nb, c, f_in)
     # Columns reordered k | v | q (PyG's order is k | q | v) so that k, v and q are slices.
-    kvq = lambda a: jnp.concatenate([a[..., :f], a[..., 2 * f:], a[..., f:2 * f]], -1)  # noqa: E731
+    kvq = lambda a: jnp.concatenate([a[..., :f], a[..., 2 * f :], a[..., f : 2 * f]], -1)  # noqa: E731
     kvq_out = _block_dense(xb, blk_type, kvq(params["kqv_kernel"]), kvq(params["kqv_bias"]))
-    kv = kvq_out[..., :2 * f].reshape(nb, c, 2, h, d)
-    q = kvq_out[..., 2 * f:].reshape(rows, h, d)
+    kv = kvq_out[..., : 2 * f].reshape(nb, c, 2, h, d)
+    q = kvq_out[..., 2 * f :].reshape(rows, h, d)
 
     # Relation transforms of every node's key and value for the S relations it is a source of:
     # per block, (k | v) x head: [C, D] @ [D, S * D]. The result stays in the matmul's own layout
     # [nb, 2 H, C, S D]; each edge gathers its 2 H rows of D (no transposed copy of the table).
-    w = jnp.stack([_slot_kernels(params["k_rel"], slot_rel),
-                   _slot_kernels(params["v_rel"], slot_rel)], 1)[blk_type]  # [nb, 2, H, D, S*D]
-    kvt = jnp.einsum("bcjhd,bjhde->bjhce", kv, w)                            # [nb, 2, H, C, S*D]
+    w = jnp.stack([_slot_kernels(params["k_rel"], slot_rel), _slot_kernels(params["v_rel"], slot_rel)], 1)[
+        blk_type
+    ]  # [nb, 2, H, D, S*D]
+    kvt = jnp.einsum("bcjhd,bjhde->bjhce", kv, w)  # [nb, 2, H, C, S*D]
     ps, pd = pos[senders], pos[receivers]
     # Row of (block, k|v, head, c) in kvt for each edge and head, then its slot's D columns.
     base = ((ps // c)[:, None] * (2 * h) + jnp.arange(h, dtype=ps.dtype)) * c + (ps % c)[:, None]
     slot = jnp.asarray(rel_slot)[rel][:, None]
     table = kvt.reshape(-1, d)
-    k_e = table[base * s + slot]                                            # [E, H, D]
+    k_e = table[base * s + slot]  # [E, H, D]
     v_e = table[(base + h * c) * s + slot]
     q_e = q[pd]
     score = jnp.sum(q_e * k_e, axis=-1) * params["p_rel"][rel] / math.sqrt(d)
@@ -214,8 +222,9 @@ def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mas
     msg = jnp.where(live[:, None, None], v_e * alpha[..., None], 0.0)
     agg = jax.ops.segment_sum(msg, pd, rows).reshape(nb, c, f)
 
-    out = _block_dense(jax.nn.gelu(agg, approximate=False), blk_type, params["out_kernel"],
-                       params["out_bias"])
+    out = _block_dense(
+        jax.nn.gelu(agg, approximate=False), blk_type, params["out_kernel"], params["out_bias"]
+    )
     if f_in == f:
         gate = jax.nn.sigmoid(params["skip"][blk_type])[:, None, None]
         out = gate * out + (1.0 - gate) * xb
@@ -223,8 +232,7 @@ def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mas
     return jnp.where(node_mask[:, None], out, 0.0), alpha
 
 
-def _hgt_single(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *,
-                heads: int):
+def _hgt_single(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int):
     """HGTConv on ONE graph without any permutation: (out f32[N, F], alpha f32[E, H]).
 
     Every per-type linear runs all T types on every node and selects (an input-side one-hot: one
@@ -253,7 +261,7 @@ def _hgt_single(params, x, node_type, node_mask, senders, receivers, relation, e
 
     x0 = jnp.where(node_mask[:, None], x, 0.0)
     kqv = typed(x0, params["kqv_kernel"], params["kqv_bias"])
-    k, q, v = (kqv[:, i * f:(i + 1) * f].reshape(n, h, d) for i in range(3))
+    k, q, v = (kqv[:, i * f : (i + 1) * f].reshape(n, h, d) for i in range(3))
     k_all = jnp.einsum("nhd,rhde->nrhe", k, params["k_rel"]).reshape(n * r, h, d)
     v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
     row = senders * r + rel
@@ -268,17 +276,23 @@ def _hgt_single(params, x, node_type, node_mask, senders, receivers, relation, e
     return jnp.where(node_mask[:, None], out, 0.0), alpha
 
 
-def _hgt_batch(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *,
-               heads: int):
+def _hgt_batch(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int):
     """`_hgt` on a batch of graphs [B, N, ...] / [B, E] run as ONE disjoint-union graph, so the type
     blocks span the batch (large matmuls, padding paid once per batch, not per graph)."""
     b, n = node_type.shape
     e = senders.shape[-1]
     offset = (jnp.arange(b, dtype=senders.dtype) * n)[:, None]
-    out, alpha = _hgt(params, x.reshape(b * n, x.shape[-1]), node_type.reshape(-1),
-                      node_mask.reshape(-1), (senders + offset).reshape(-1),
-                      (receivers + offset).reshape(-1), relation.reshape(-1),
-                      edge_mask.reshape(-1), heads=heads)
+    out, alpha = _hgt(
+        params,
+        x.reshape(b * n, x.shape[-1]),
+        node_type.reshape(-1),
+        node_mask.reshape(-1),
+        (senders + offset).reshape(-1),
+        (receivers + offset).reshape(-1),
+        relation.reshape(-1),
+        edge_mask.reshape(-1),
+        heads=heads,
+    )
     return out.reshape(b, n, -1), alpha.reshape(b, e, heads)
 
 
@@ -351,11 +365,18 @@ class HGTConv(nn.Module):
         out_bias = self.param("out_bias", _bias_uniform(f), (t, f))
         skip = self.param("skip", nn.initializers.ones, (t,))
 
-        params = dict(kqv_kernel=kqv_kernel, kqv_bias=kqv_bias, k_rel=k_rel, v_rel=v_rel,
-                      p_rel=p_rel, out_kernel=out_kernel, out_bias=out_bias, skip=skip)
+        params = dict(
+            kqv_kernel=kqv_kernel,
+            kqv_bias=kqv_bias,
+            k_rel=k_rel,
+            v_rel=v_rel,
+            p_rel=p_rel,
+            out_kernel=out_kernel,
+            out_bias=out_bias,
+            skip=skip,
+        )
         run = _hgt_batch if x.ndim == 3 else _hgt_single
-        out, alpha = run(params, x, node_type, node_mask, senders, receivers, relation, edge_mask,
-                         heads=h)
+        out, alpha = run(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, heads=h)
         if not self.is_initializing():  # keep init's variables free of sown values (batch-agnostic)
             self.sow("attention", "alpha", alpha)
         return out
@@ -384,7 +405,8 @@ class GCNConv(nn.Module):
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
         if x.ndim == 3:  # a batch of graphs: [B, N, F_in], [B, N], [B, E] ...
             return jax.vmap(_gcn, in_axes=(None, None, 0, 0, 0, 0, 0))(
-                kernel, bias, x, node_mask, senders, receivers, edge_mask)
+                kernel, bias, x, node_mask, senders, receivers, edge_mask
+            )
         return _gcn(kernel, bias, x, node_mask, senders, receivers, edge_mask)
 
 

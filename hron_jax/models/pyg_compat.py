@@ -17,7 +17,7 @@ GCNConv: lin.weight [F, F_in] -> kernel = weight.T; bias [F] -> bias.
 
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -54,12 +54,21 @@ def hgt_params_from_pyg(
 
     p_rel = np.stack([g(f"p_rel.{name}").reshape(heads) for name in relations])
     skip = np.stack([g(f"skip.{t}").reshape(()) for t in node_types])
-    return dict(kqv_kernel=kqv_kernel, kqv_bias=kqv_bias, k_rel=rel_stack("k_rel.weight"),
-                v_rel=rel_stack("v_rel.weight"), p_rel=p_rel, out_kernel=out_kernel,
-                out_bias=out_bias, skip=skip)
+    return dict(
+        kqv_kernel=kqv_kernel,
+        kqv_bias=kqv_bias,
+        k_rel=rel_stack("k_rel.weight"),
+        v_rel=rel_stack("v_rel.weight"),
+        p_rel=p_rel,
+        out_kernel=out_kernel,
+        out_bias=out_bias,
+        skip=skip,
+    )
 
 
 def gcn_params_from_pyg(state: Mapping[str, np.ndarray], prefix: str = "") -> dict[str, np.ndarray]:
     """Flax params of one GCNConv from a PyG GCNConv state dict (keys `prefix + name`)."""
-    return dict(kernel=np.asarray(state[prefix + "lin.weight"], np.float32).T,
-                bias=np.asarray(state[prefix + "bias"], np.float32))
+    return dict(
+        kernel=np.asarray(state[prefix + "lin.weight"], np.float32).T,
+        bias=np.asarray(state[prefix + "bias"], np.float32),
+    )

@@ -17,7 +17,7 @@ import numpy as np
 PATH = pathlib.Path(__file__).resolve().parent / "data" / "category_vectors.npz"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_category_vectors(num_classes: int | None = None) -> np.ndarray:
     """f32[C, W] table; raises ValueError if it does not match the vocabulary or num_classes."""
     with np.load(PATH) as data:
@@ -29,7 +29,9 @@ def load_category_vectors(num_classes: int | None = None) -> np.ndarray:
     if names != expected:
         raise ValueError(f"{PATH} was made for another vocabulary; rerun tools/make_category_vectors.py")
     if num_classes is not None and num_classes != vectors.shape[0]:
-        raise ValueError(f"category vectors have {vectors.shape[0]} rows but the model was built "
-                         f"with num_classes={num_classes}")
+        raise ValueError(
+            f"category vectors have {vectors.shape[0]} rows but the model was built "
+            f"with num_classes={num_classes}"
+        )
     vectors.setflags(write=False)
     return vectors

@@ -28,15 +28,18 @@ def main(argv=None) -> int:
     if args.all:
         jobs += [(os.path.join(args.dir, name), fn) for name, fn in SHIPPED.items()]
     if args.seed is not None:
-        jobs.append((args.out or os.path.join("scenes", f"house_{args.seed}.xml"),
-                     lambda: generate_house(args.seed)))
+        jobs.append(
+            (args.out or os.path.join("scenes", f"house_{args.seed}.xml"), lambda: generate_house(args.seed))
+        )
     for path, fn in jobs:
         os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
         with open(path, "w") as f:
             f.write(fn())
         scene = load_scene(path)  # refuse to leave a file behind that does not load
-        print(f"{path}: {scene.num_rooms} rooms, {scene.num_furniture} furniture, {scene.model.ngeom} geoms, "
-              f"{scene.room_area().sum():.1f} m2, {scene.num_slots} slots, {len(scene.goals)} goal tuples")
+        print(
+            f"{path}: {scene.num_rooms} rooms, {scene.num_furniture} furniture, {scene.model.ngeom} geoms, "
+            f"{scene.room_area().sum():.1f} m2, {scene.num_slots} slots, {len(scene.goals)} goal tuples"
+        )
         if args.plot:
             from .plot import save_topdown
 

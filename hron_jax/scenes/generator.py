@@ -89,8 +89,12 @@ class Placed:
 
 
 def _overlap(a, b, gap=0.0):
-    return (a[0, 0] < b[1, 0] + gap and b[0, 0] < a[1, 0] + gap
-            and a[0, 1] < b[1, 1] + gap and b[0, 1] < a[1, 1] + gap)
+    return (
+        a[0, 0] < b[1, 0] + gap
+        and b[0, 0] < a[1, 0] + gap
+        and a[0, 1] < b[1, 1] + gap
+        and b[0, 1] < a[1, 1] + gap
+    )
 
 
 def _front_dir(side):
@@ -104,10 +108,12 @@ def _approach_region(fp, side, r=WALK_RADIUS, reach=0.4):
     m = r + reach
     if side is None:
         return np.array([[x0 - m, y0 - m], [x1 + m, y1 + m]])
-    return {"N": np.array([[x0 - 0.3, y0 - m], [x1 + 0.3, y0]]),
-            "S": np.array([[x0 - 0.3, y1], [x1 + 0.3, y1 + m]]),
-            "E": np.array([[x0 - m, y0 - 0.3], [x0, y1 + 0.3]]),
-            "W": np.array([[x1, y0 - 0.3], [x1 + m, y1 + 0.3]])}[side]
+    return {
+        "N": np.array([[x0 - 0.3, y0 - m], [x1 + 0.3, y0]]),
+        "S": np.array([[x0 - 0.3, y1], [x1 + 0.3, y1 + m]]),
+        "E": np.array([[x0 - m, y0 - 0.3], [x0, y1 + 0.3]]),
+        "W": np.array([[x1, y0 - 0.3], [x1 + m, y1 + 0.3]]),
+    }[side]
 
 
 class RoomFurnisher:
@@ -139,8 +145,12 @@ class RoomFurnisher:
         free, xs, ys = free_grid(lo, hi, [p.fp for p in pieces], WALK_RADIUS)
         # the walls themselves: a robot centre must stay WALK_RADIUS from the inner faces
         X, Y = np.meshgrid(xs, ys)
-        free &= (X > lo[0] + WALK_RADIUS) & (X < hi[0] - WALK_RADIUS) & (Y > lo[1] + WALK_RADIUS) \
+        free &= (
+            (X > lo[0] + WALK_RADIUS)
+            & (X < hi[0] - WALK_RADIUS)
+            & (Y > lo[1] + WALK_RADIUS)
             & (Y < hi[1] - WALK_RADIUS)
+        )
         labels, door_lab = component_at(free, xs, ys, self.door_points)
         if len(self.door_points) == 0 or door_lab[0] == 0 or np.any(door_lab != door_lab[0]):
             return False
@@ -329,17 +339,20 @@ def _door_zone(door, rect):
     x0, y0, x1, y1 = rect
     if door.along == "x":
         into = 1 if abs(cy - y0) < 1e-6 else -1
-        zone = np.array([[cx - w, min(cy, cy + into * DOOR_CLEAR_DEPTH)], [cx + w, max(cy, cy + into * DOOR_CLEAR_DEPTH)]])
+        zone = np.array(
+            [[cx - w, min(cy, cy + into * DOOR_CLEAR_DEPTH)], [cx + w, max(cy, cy + into * DOOR_CLEAR_DEPTH)]]
+        )
         point = (cx, cy + into * 0.45)
     else:
         into = 1 if abs(cx - x0) < 1e-6 else -1
-        zone = np.array([[min(cx, cx + into * DOOR_CLEAR_DEPTH), cy - w], [max(cx, cx + into * DOOR_CLEAR_DEPTH), cy + w]])
+        zone = np.array(
+            [[min(cx, cx + into * DOOR_CLEAR_DEPTH), cy - w], [max(cx, cx + into * DOOR_CLEAR_DEPTH), cy + w]]
+        )
         point = (cx + into * 0.45, cy)
     return zone, point
 
 
-def build_house(name, rooms, doors, wishes, rng, comment="", pool_per_category=POOL_PER_CATEGORY,
-                starts=()):
+def build_house(name, rooms, doors, wishes, rng, comment="", pool_per_category=POOL_PER_CATEGORY, starts=()):
     """MJCF text of a house plan. wishes[i]: list of Item for room i. Returns (xml, writer)."""
     w = mjcf.SceneWriter(name, comment)
     for r in rooms:
@@ -371,24 +384,49 @@ def build_house(name, rooms, doors, wishes, rng, comment="", pool_per_category=P
 # ----------------------------------------------------------------------------------------------
 
 WISHES = {
-    "kitchen": lambda rng: [Item("fridge", sides="NSEW"), Item("counter"), Item("sink_cabinet"), Item("counter"),
-                            Item("cabinet")] + ([Item("table", "centre", dims={"w": 1.0, "d": 0.7})]
-                                                if rng.random() < 0.5 else [Item("shelf")]),
-    "living_room": lambda rng: [Item("sofa"), Item("coffee_table", "front", "sofa"),
-                                Item("tv_stand", "opposite", "sofa"), Item("shelf"), Item("cabinet"),
-                                Item("shelf")][: 4 + int(rng.integers(0, 3))],
-    "dining_room": lambda rng: [Item("table", "centre", dims={"w": 1.6, "d": 0.9}), Item("cabinet"),
-                                Item(["dresser", "shelf"][int(rng.integers(0, 2))])],
-    "bedroom": lambda rng: [Item("bed", dims={"w": [1.0, 1.4][int(rng.integers(0, 2))]}),
-                            Item("nightstand", "beside", "bed"), Item("wardrobe"),
-                            Item("nightstand", "beside", "bed")] + [Item("dresser"), Item("desk"), Item("shelf")][
-                                : int(rng.integers(0, 3))],
-    "bathroom": lambda rng: [Item("sink_cabinet"), Item("cabinet", dims={"w": 0.6, "d": 0.35})]
-                            + ([Item("shelf")] if rng.random() < 0.5 else []),
+    "kitchen": lambda rng: (
+        [
+            Item("fridge", sides="NSEW"),
+            Item("counter"),
+            Item("sink_cabinet"),
+            Item("counter"),
+            Item("cabinet"),
+        ]
+        + ([Item("table", "centre", dims={"w": 1.0, "d": 0.7})] if rng.random() < 0.5 else [Item("shelf")])
+    ),
+    "living_room": lambda rng: [
+        Item("sofa"),
+        Item("coffee_table", "front", "sofa"),
+        Item("tv_stand", "opposite", "sofa"),
+        Item("shelf"),
+        Item("cabinet"),
+        Item("shelf"),
+    ][: 4 + int(rng.integers(0, 3))],
+    "dining_room": lambda rng: [
+        Item("table", "centre", dims={"w": 1.6, "d": 0.9}),
+        Item("cabinet"),
+        Item(["dresser", "shelf"][int(rng.integers(0, 2))]),
+    ],
+    "bedroom": lambda rng: (
+        [
+            Item("bed", dims={"w": [1.0, 1.4][int(rng.integers(0, 2))]}),
+            Item("nightstand", "beside", "bed"),
+            Item("wardrobe"),
+            Item("nightstand", "beside", "bed"),
+        ]
+        + [Item("dresser"), Item("desk"), Item("shelf")][: int(rng.integers(0, 3))]
+    ),
+    "bathroom": lambda rng: (
+        [Item("sink_cabinet"), Item("cabinet", dims={"w": 0.6, "d": 0.35})]
+        + ([Item("shelf")] if rng.random() < 0.5 else [])
+    ),
     "office": lambda rng: [Item("desk"), Item("shelf"), Item("cabinet"), Item("shelf")],
     "utility_room": lambda rng: [Item("cabinet"), Item("shelf"), Item("counter", dims={"w": 1.2})],
-    "corridor": lambda rng: [Item(["cabinet", "shelf", "dresser"][int(rng.integers(0, 3))],
-                                  dims={"d": 0.35})] if rng.random() < 0.7 else [],
+    "corridor": lambda rng: (
+        [Item(["cabinet", "shelf", "dresser"][int(rng.integers(0, 3))], dims={"d": 0.35})]
+        if rng.random() < 0.7
+        else []
+    ),
 }
 
 
@@ -402,6 +440,7 @@ def _split(lo, hi, weights, rng, jitter=0.15):
 
 def _transform_plan(rooms, doors, W, H, flip_x, flip_y, transpose):
     """Mirror / transpose a plan in its W x H footprint, so layouts vary beyond one orientation."""
+
     def pt(x, y):
         x, y = (W - x if flip_x else x), (H - y if flip_y else y)
         return (y, x) if transpose else (x, y)
@@ -412,8 +451,10 @@ def _transform_plan(rooms, doors, W, H, flip_x, flip_y, transpose):
 
     rooms = [RoomSpec(r.category, rect(r.rect)) for r in rooms]
     flip_axis = {"x": "y", "y": "x"}
-    doors = [DoorSpec(d.a, d.b, pt(*d.centre), flip_axis[d.along] if transpose else d.along, d.width)
-             for d in doors]
+    doors = [
+        DoorSpec(d.a, d.b, pt(*d.centre), flip_axis[d.along] if transpose else d.along, d.width)
+        for d in doors
+    ]
     return rooms, doors
 
 
@@ -452,7 +493,9 @@ def random_plan(seed: int):
         if shared_edge(r.rect, rooms[corridor].rect) is not None:
             width = 1.4 if r.category in ("living_room", "dining_room") else 1.0
             doors.append(make_door(rooms, i, corridor, rng, width))
-    idx = {r.category: i for i, r in enumerate(rooms) if r.category in ("kitchen", "dining_room", "living_room")}
+    idx = {
+        r.category: i for i, r in enumerate(rooms) if r.category in ("kitchen", "dining_room", "living_room")
+    }
     for a, b in (("kitchen", "dining_room"), ("dining_room", "living_room")):
         if shared_edge(rooms[idx[a]].rect, rooms[idx[b]].rect) is not None:
             doors.append(make_door(rooms, idx[a], idx[b], rng, 1.2))
@@ -464,8 +507,9 @@ def random_plan(seed: int):
             if q.category == "bedroom" and shared_edge(r.rect, q.rect) is not None and rng.random() < 0.4:
                 doors.append(make_door(rooms, i, j, rng, 1.0))
                 break
-    rooms, doors = _transform_plan(rooms, doors, W, H, rng.random() < 0.5, rng.random() < 0.5,
-                                   rng.random() < 0.5)
+    rooms, doors = _transform_plan(
+        rooms, doors, W, H, rng.random() < 0.5, rng.random() < 0.5, rng.random() < 0.5
+    )
     wishes = [WISHES[r.category](rng) for r in rooms]
     return rooms, doors, wishes, rng
 
@@ -473,6 +517,12 @@ def random_plan(seed: int):
 def generate_house(seed: int) -> str:
     """Annotated MJCF text of the random house for `seed`."""
     rooms, doors, wishes, rng = random_plan(seed)
-    xml, _ = build_house(f"house_seed{seed}", rooms, doors, wishes, rng,
-                         comment=f"generated by python -m hron_jax.scenes --seed {seed}")
+    xml, _ = build_house(
+        f"house_seed{seed}",
+        rooms,
+        doors,
+        wishes,
+        rng,
+        comment=f"generated by python -m hron_jax.scenes --seed {seed}",
+    )
     return xml

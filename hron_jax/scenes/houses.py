@@ -53,34 +53,75 @@ def default_house() -> str:
     ]
     wishes = [
         [Item("cabinet", sides="W", dims={"d": 0.35}), Item("shelf", sides="E", dims={"d": 0.3})],
-        [Item("sofa", sides="W"), Item("coffee_table", "front", "sofa"), Item("tv_stand", "opposite", "sofa"),
-         Item("shelf", sides="N"), Item("shelf", sides="N"), Item("cabinet", sides="S")],
-        [Item("table", "centre", dims={"w": 1.8, "d": 0.9}), Item("cabinet", sides="N", dims={"w": 1.2}),
-         Item("dresser", sides="EW")],
-        [Item("fridge", sides="N"), Item("counter", sides="N", dims={"w": 2.0}), Item("sink_cabinet", sides="N"),
-         Item("counter", sides="E", dims={"w": 2.0}), Item("cabinet", sides="E"), Item("shelf", sides="S"),
-         Item("table", "centre", dims={"w": 1.2, "d": 0.8})],
-        [Item("bed", sides="W", dims={"w": 1.6}), Item("nightstand", "beside", "bed"),
-         Item("nightstand", "beside", "bed"), Item("wardrobe", sides="S", dims={"w": 1.6}),
-         Item("dresser", sides="E")],
-        [Item("sink_cabinet", sides="S"), Item("cabinet", sides="E", dims={"w": 0.6, "d": 0.35}),
-         Item("shelf", sides="W", dims={"d": 0.3})],
-        [Item("bed", sides="S", dims={"w": 1.0}), Item("nightstand", "beside", "bed"), Item("wardrobe", sides="E"),
-         Item("desk", sides="W", dims={"w": 1.1, "d": 0.6}), Item("shelf", sides="W")],
-        [Item("desk", sides="S", dims={"w": 1.5}), Item("shelf", sides="E"), Item("shelf", sides="E"),
-         Item("cabinet", sides="W"), Item("table", "centre", dims={"w": 1.0, "d": 0.6})],
+        [
+            Item("sofa", sides="W"),
+            Item("coffee_table", "front", "sofa"),
+            Item("tv_stand", "opposite", "sofa"),
+            Item("shelf", sides="N"),
+            Item("shelf", sides="N"),
+            Item("cabinet", sides="S"),
+        ],
+        [
+            Item("table", "centre", dims={"w": 1.8, "d": 0.9}),
+            Item("cabinet", sides="N", dims={"w": 1.2}),
+            Item("dresser", sides="EW"),
+        ],
+        [
+            Item("fridge", sides="N"),
+            Item("counter", sides="N", dims={"w": 2.0}),
+            Item("sink_cabinet", sides="N"),
+            Item("counter", sides="E", dims={"w": 2.0}),
+            Item("cabinet", sides="E"),
+            Item("shelf", sides="S"),
+            Item("table", "centre", dims={"w": 1.2, "d": 0.8}),
+        ],
+        [
+            Item("bed", sides="W", dims={"w": 1.6}),
+            Item("nightstand", "beside", "bed"),
+            Item("nightstand", "beside", "bed"),
+            Item("wardrobe", sides="S", dims={"w": 1.6}),
+            Item("dresser", sides="E"),
+        ],
+        [
+            Item("sink_cabinet", sides="S"),
+            Item("cabinet", sides="E", dims={"w": 0.6, "d": 0.35}),
+            Item("shelf", sides="W", dims={"d": 0.3}),
+        ],
+        [
+            Item("bed", sides="S", dims={"w": 1.0}),
+            Item("nightstand", "beside", "bed"),
+            Item("wardrobe", sides="E"),
+            Item("desk", sides="W", dims={"w": 1.1, "d": 0.6}),
+            Item("shelf", sides="W"),
+        ],
+        [
+            Item("desk", sides="S", dims={"w": 1.5}),
+            Item("shelf", sides="E"),
+            Item("shelf", sides="E"),
+            Item("cabinet", sides="W"),
+            Item("table", "centre", dims={"w": 1.0, "d": 0.6}),
+        ],
         [Item("counter", sides="S", dims={"w": 1.4}), Item("cabinet", sides="E"), Item("shelf", sides="W")],
     ]
-    xml, _ = build_house("house", rooms, doors, wishes, rng, starts=[(1.0, 5.6, 0.0)],
-                         comment="default HRON house, written by python -m hron_jax.scenes --all; "
-                                 "edit hron_jax/scenes/houses.py, not this file")
+    xml, _ = build_house(
+        "house",
+        rooms,
+        doors,
+        wishes,
+        rng,
+        starts=[(1.0, 5.6, 0.0)],
+        comment="default HRON house, written by python -m hron_jax.scenes --all; "
+        "edit hron_jax/scenes/houses.py, not this file",
+    )
     return xml
 
 
 def symmetric_room() -> str:
     """One 8 m x 6 m room, mirror plane x = 0: on each half a table and a shelf, exactly mirrored."""
-    w = mjcf.SceneWriter("symmetric_room", "directed-task room, mirror-symmetric about x = 0; written by "
-                                            "python -m hron_jax.scenes --all")
+    w = mjcf.SceneWriter(
+        "symmetric_room",
+        "directed-task room, mirror-symmetric about x = 0; written by python -m hron_jax.scenes --all",
+    )
     x0, x1, y0, y1 = -4.0, 4.0, -3.0, 3.0
     w.add_room("living_room", [(x0, y0, x1, y1)])
     w.add_wall((x0, y0), (x1, y0))

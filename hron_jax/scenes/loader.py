@@ -189,7 +189,9 @@ def _check_xml(path):
         hint = f"pass one of its .xml files ({', '.join(xmls)})" if xmls else "pass an MJCF .xml scene file"
         raise _err(path, f"is a directory, not a scene file; {hint}")
     if not os.path.exists(path):
-        raise _err(path, "file not found; check the path (shipped scenes are in scenes/, e.g. scenes/house.xml)")
+        raise _err(
+            path, "file not found; check the path (shipped scenes are in scenes/, e.g. scenes/house.xml)"
+        )
     try:
         with open(path, "rb") as f:
             text = f.read()
@@ -206,8 +208,11 @@ def _check_xml(path):
             raise _err(path, f"not an XML file (it starts with {head!r}); {_SEE_FORMAT}") from None
         line, col = e.position
         reason = str(e).split(":")[0]  # the rest repeats the position
-        raise _err(path, f"broken XML (line {line}, column {col + 1}: {reason}); fix the XML there, or "
-                         "regenerate the file if it was cut off") from None
+        raise _err(
+            path,
+            f"broken XML (line {line}, column {col + 1}: {reason}); fix the XML there, or "
+            "regenerate the file if it was cut off",
+        ) from None
     if root.tag != "mujoco":
         raise _err(path, f"root element is <{root.tag}>, not <mujoco>; {_SEE_FORMAT}")
 
@@ -217,8 +222,10 @@ def _load_model(path):
     try:
         return mujoco.MjModel.from_xml_path(path)
     except Exception as e:  # MuJoCo raises ValueError with the parser's message
-        raise _err(path, f"MuJoCo cannot load the file: {str(e).strip()}; fix what it reports "
-                         "(see docs/scene_format.md)") from e
+        raise _err(
+            path,
+            f"MuJoCo cannot load the file: {str(e).strip()}; fix what it reports (see docs/scene_format.md)",
+        ) from e
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
@@ -257,12 +264,18 @@ def scene_from_model(model, path: str = "<model>") -> Scene:
     # Missing annotations come first: any later message (no material, ...) would send the author
     # fixing the wrong thing.
     if not (rooms or furniture or objects):
-        raise _err(path, "a MuJoCo model without HRON annotations: no body is named 'room:<category>:<k>', "
-                         "'furniture:<category>:<k>' or 'object:<category>:<k>'; annotate it as in "
-                         "docs/scene_format.md")
+        raise _err(
+            path,
+            "a MuJoCo model without HRON annotations: no body is named 'room:<category>:<k>', "
+            "'furniture:<category>:<k>' or 'object:<category>:<k>'; annotate it as in "
+            "docs/scene_format.md",
+        )
     if not rooms:
-        raise _err(path, "no room annotations: a scene needs at least one body named 'room:<category>:<k>' "
-                         "whose box geoms are the floors, see docs/scene_format.md")
+        raise _err(
+            path,
+            "no room annotations: a scene needs at least one body named 'room:<category>:<k>' "
+            "whose box geoms are the floors, see docs/scene_format.md",
+        )
     if model.nmat < 1:
         raise _err(path, "no <material> defined; add one to <asset> (mjx.ray needs at least one)")
     data = mujoco.MjData(model)
@@ -342,8 +355,11 @@ def scene_from_model(model, path: str = "<model>") -> Scene:
         for j in range(nf):
             if fr[j] < 0:
                 x, y = body_pos[nr + j, :2]
-                raise _err(path, f"furniture {names[nr + j]!r} at ({x:.2f}, {y:.2f}) is outside every room "
-                                 "floor; move it or extend a room's floor boxes")
+                raise _err(
+                    path,
+                    f"furniture {names[nr + j]!r} at ({x:.2f}, {y:.2f}) is outside every room "
+                    "floor; move it or extend a room's floor boxes",
+                )
         instance_room[nr : nr + nf] = fr
     geom_room = room_at(room_floors, geom_center[:, :2]).astype(np.int32)
     geom_room[geom_center[:, 2] < -1.0] = -1  # parked pool objects are nowhere
@@ -373,12 +389,17 @@ def scene_from_model(model, path: str = "<model>") -> Scene:
         if tok[0] == "door":
             lo, hi = c[:2] - h[:2], c[:2] + h[:2]
             f = room_floors
-            overlap = ((np.minimum(hi[0], f[..., 2]) - np.maximum(lo[0], f[..., 0]) > _TOL)
-                       & (np.minimum(hi[1], f[..., 3]) - np.maximum(lo[1], f[..., 1]) > _TOL)).any(-1)
+            overlap = (
+                (np.minimum(hi[0], f[..., 2]) - np.maximum(lo[0], f[..., 0]) > _TOL)
+                & (np.minimum(hi[1], f[..., 3]) - np.maximum(lo[1], f[..., 1]) > _TOL)
+            ).any(-1)
             touched = np.nonzero(overlap)[0]
             if len(touched) < 2:
-                raise _err(path, f"door {name!r} touches {len(touched)} room floor(s); its box must reach "
-                                 "into the floors of both rooms it connects")
+                raise _err(
+                    path,
+                    f"door {name!r} touches {len(touched)} room floor(s); its box must reach "
+                    "into the floors of both rooms it connects",
+                )
             for a in touched:
                 for b in touched:
                     if a != b:
@@ -394,7 +415,9 @@ def scene_from_model(model, path: str = "<model>") -> Scene:
         fname = ":".join(tok[:3])
         _parse_category(path, "furniture", tok[1], f"slot {name!r}")
         if tok[3] not in V.RELATIONS:
-            raise _err(path, f"slot {name!r}: unknown relation {tok[3]!r}; use one of {', '.join(V.RELATIONS)}")
+            raise _err(
+                path, f"slot {name!r}: unknown relation {tok[3]!r}; use one of {', '.join(V.RELATIONS)}"
+            )
         if fname not in name_to_node:
             raise _err(path, f"slot {name!r}: no furniture body named {fname!r}")
         node = name_to_node[fname]
@@ -420,34 +443,62 @@ def scene_from_model(model, path: str = "<model>") -> Scene:
     pool_count = np.array([len(p) for p in per_cat], np.int32)
 
     # ---- bounds (static geometry only) -------------------------------------------------------------
-    static = np.array([geom_instance[g] < 0 or node_type[geom_instance[g]] != V.OBJECT
-                       for g in range(model.ngeom)], bool)
-    bounds = np.stack([(geom_center[static] - geom_half[static]).min(0),
-                       (geom_center[static] + geom_half[static]).max(0)])
+    static = np.array(
+        [geom_instance[g] < 0 or node_type[geom_instance[g]] != V.OBJECT for g in range(model.ngeom)], bool
+    )
+    bounds = np.stack(
+        [(geom_center[static] - geom_half[static]).min(0), (geom_center[static] + geom_half[static]).max(0)]
+    )
 
     slot_furniture = np.array(slot_f, np.int32).reshape(-1)
     slot_relation = np.array(slot_rel, np.int32).reshape(-1)
     slot_center = np.array(slot_c, np.float64).reshape(-1, 3)
     slot_half = np.array(slot_h, np.float64).reshape(-1, 3)
-    goals, goal_slots = goal_table(vocab_index, instance_room, slot_furniture, slot_relation, slot_half,
-                                   pool_count)
+    goals, goal_slots = goal_table(
+        vocab_index, instance_room, slot_furniture, slot_relation, slot_half, pool_count
+    )
 
     return Scene(
-        path=path, model=model,
-        names=names, node_type=node_type, category=category, vocab_index=vocab_index,
-        instance_room=instance_room, body_id=body_id, mocap_id=mocap_id, body_pos=body_pos,
-        aabb_center=aabb_center, aabb_half=aabb_half,
-        num_rooms=nr, num_furniture=nf, num_objects=len(objects),
-        geom_instance=geom_instance, geom_class=geom_class, geom_aabb_center=geom_center,
-        geom_aabb_half=geom_half, geom_room=geom_room,
-        room_floors=room_floors, room_floor_valid=room_floor_valid, room_adjacency=adjacency,
-        door_names=tuple(door_names), door_center=np.array(door_c).reshape(-1, 3),
-        door_half=np.array(door_h).reshape(-1, 3), door_rooms=np.array(door_pairs, np.int32).reshape(-1, 2),
-        slot_names=tuple(slot_names), slot_furniture=slot_furniture, slot_relation=slot_relation,
-        slot_center=slot_center, slot_half=slot_half,
-        pool_mocap=pool_mocap, pool_node=pool_node, pool_count=pool_count,
-        start_pos=np.array(start_p).reshape(-1, 3), start_yaw=np.array(start_yaw).reshape(-1),
-        bounds=bounds, goals=goals, goal_slots=goal_slots,
+        path=path,
+        model=model,
+        names=names,
+        node_type=node_type,
+        category=category,
+        vocab_index=vocab_index,
+        instance_room=instance_room,
+        body_id=body_id,
+        mocap_id=mocap_id,
+        body_pos=body_pos,
+        aabb_center=aabb_center,
+        aabb_half=aabb_half,
+        num_rooms=nr,
+        num_furniture=nf,
+        num_objects=len(objects),
+        geom_instance=geom_instance,
+        geom_class=geom_class,
+        geom_aabb_center=geom_center,
+        geom_aabb_half=geom_half,
+        geom_room=geom_room,
+        room_floors=room_floors,
+        room_floor_valid=room_floor_valid,
+        room_adjacency=adjacency,
+        door_names=tuple(door_names),
+        door_center=np.array(door_c).reshape(-1, 3),
+        door_half=np.array(door_h).reshape(-1, 3),
+        door_rooms=np.array(door_pairs, np.int32).reshape(-1, 2),
+        slot_names=tuple(slot_names),
+        slot_furniture=slot_furniture,
+        slot_relation=slot_relation,
+        slot_center=slot_center,
+        slot_half=slot_half,
+        pool_mocap=pool_mocap,
+        pool_node=pool_node,
+        pool_count=pool_count,
+        start_pos=np.array(start_p).reshape(-1, 3),
+        start_yaw=np.array(start_yaw).reshape(-1),
+        bounds=bounds,
+        goals=goals,
+        goal_slots=goal_slots,
     )
 
 

@@ -16,7 +16,7 @@ coincide (slot bottom = support top) do so exactly after parsing.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -87,14 +87,28 @@ def table(rgba, w=1.4, d=0.8, h=0.75, top=0.04, leg=0.05):
     for sx in (-1, 1):
         for sy in (-1, 1):
             cx, cy = sx * (x - 0.03 - leg / 2), sy * (y - 0.03 - leg / 2)
-            parts.append(_box((cx - leg / 2, cy - leg / 2, 0), (cx + leg / 2, cy + leg / 2, h - top), leg_rgba))
+            parts.append(
+                _box((cx - leg / 2, cy - leg / 2, 0), (cx + leg / 2, cy + leg / 2, h - top), leg_rgba)
+            )
     ix, iy = x - 0.03 - leg, y - 0.03 - leg  # inner faces of the legs
     parts += [_top_slot(-x, x, -y, y, h), _slot("under", (-ix, -iy, 0), (ix, iy, h - top))]
     return parts
 
 
-def case(rgba, w, d, h, boards=(), base=0.04, lift=0.0, t=0.02, top=0.03, top_slot=True,
-         max_inside_z=1.5, top_overhang=0.0):
+def case(
+    rgba,
+    w,
+    d,
+    h,
+    boards=(),
+    base=0.04,
+    lift=0.0,
+    t=0.02,
+    top=0.03,
+    top_slot=True,
+    max_inside_z=1.5,
+    top_overhang=0.0,
+):
     """Open-front carcass: sides (reaching the floor, they are the legs), back, bottom, top, boards.
 
     boards: z of the bottom face of each intermediate board. lift: height of the bottom board above
@@ -179,7 +193,9 @@ def sofa(rgba, w=2.0, d=0.9, legs=0.12, seat=0.42, arm=0.18, back=0.22):
     for sx in (-1, 1):
         for sy in (-1, 1):
             cx, cy = sx * (x - 0.05 - leg / 2), sy * (y - 0.05 - leg / 2)
-            parts.append(_box((cx - leg / 2, cy - leg / 2, 0), (cx + leg / 2, cy + leg / 2, legs), (0.2, 0.15, 0.1, 1)))
+            parts.append(
+                _box((cx - leg / 2, cy - leg / 2, 0), (cx + leg / 2, cy + leg / 2, legs), (0.2, 0.15, 0.1, 1))
+            )
     parts.append(_top_slot(-x + arm, x - arm, -y, y - back, seat))
     ix, iy = x - 0.05 - leg, y - 0.05 - leg
     parts.append(_slot("under", (-ix, -iy, 0), (ix, iy, legs)))
@@ -218,8 +234,19 @@ BUILDERS = {
     "cabinet": lambda c, **k: case(c, **{"w": 0.8, "d": 0.45, "h": 0.9, "boards": (0.5,), "lift": 0.1, **k}),
     "nightstand": lambda c, **k: case(c, **{"w": 0.45, "d": 0.4, "h": 0.55, "lift": 0.15, **k}),
     "dresser": lambda c, **k: case(c, **{"w": 1.0, "d": 0.5, "h": 0.85, "boards": (0.45,), "lift": 0.1, **k}),
-    "wardrobe": lambda c, **k: case(c, **{"w": 1.2, "d": 0.6, "h": 2.0, "boards": (0.8, 1.5), "lift": 0.0,
-                                          "base": 0.1, "top_slot": False, **k}),
+    "wardrobe": lambda c, **k: case(
+        c,
+        **{
+            "w": 1.2,
+            "d": 0.6,
+            "h": 2.0,
+            "boards": (0.8, 1.5),
+            "lift": 0.0,
+            "base": 0.1,
+            "top_slot": False,
+            **k,
+        },
+    ),
     "counter": lambda c, **k: case(c, **{"w": 1.6, "d": 0.6, "h": 0.9, "base": 0.1, "top": 0.04, **k}),
     "fridge": lambda c, **k: _fridge(c, **k),
     "bed": lambda c, **k: bed(c, **k),
@@ -254,7 +281,9 @@ def rotate_xy(xy, yaw_deg):
 def world_footprint(parts, x, y, yaw_deg) -> np.ndarray:
     """(2, 2) world xy AABB of a furniture piece placed at (x, y) with yaw (multiple of 90)."""
     fp = local_footprint(parts)
-    corners = np.array([[fp[0, 0], fp[0, 1]], [fp[1, 0], fp[1, 1]], [fp[0, 0], fp[1, 1]], [fp[1, 0], fp[0, 1]]])
+    corners = np.array(
+        [[fp[0, 0], fp[0, 1]], [fp[1, 0], fp[1, 1]], [fp[0, 0], fp[1, 1]], [fp[1, 0], fp[0, 1]]]
+    )
     w = rotate_xy(corners, yaw_deg) + [x, y]
     return np.stack([w.min(0), w.max(0)])
 
@@ -336,8 +365,13 @@ class SceneWriter:
         """Door site in a wall gap: along='x' for a gap in a wall parallel to x."""
         name = f"door:{self._next('door')}"
         hx, hy = (width / 2, DOOR_REACH) if along == "x" else (DOOR_REACH, width / 2)
-        self.doors.append((name, np.array([centre_xy[0], centre_xy[1], DOOR_HEIGHT / 2]),
-                           np.array([hx, hy, DOOR_HEIGHT / 2])))
+        self.doors.append(
+            (
+                name,
+                np.array([centre_xy[0], centre_xy[1], DOOR_HEIGHT / 2]),
+                np.array([hx, hy, DOOR_HEIGHT / 2]),
+            )
+        )
         return name
 
     def add_furniture(self, category: str, x: float, y: float, yaw: float = 0.0, parts=None, **dims) -> str:
@@ -362,9 +396,9 @@ class SceneWriter:
     # -- output ---------------------------------------------------------------------------------
 
     def xml(self) -> str:
-        out = ['<mujoco model="%s">' % self.model_name]
+        out = [f'<mujoco model="{self.model_name}">']
         if self.comment:
-            out.insert(0, "<!-- %s -->" % self.comment.replace("--", "-"))
+            out.insert(0, "<!-- {} -->".format(self.comment.replace("--", "-")))
         out += [
             '  <compiler angle="degree"/>',
             '  <option timestep="0.01"/>',
@@ -382,18 +416,26 @@ class SceneWriter:
             for b in boxes:
                 cx, cy = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
                 hx, hy = (b[2] - b[0]) / 2, (b[3] - b[1]) / 2
-                out.append(f'      <geom type="box" pos="{_vec((cx, cy, -FLOOR_THICKNESS / 2))}" '
-                           f'size="{_vec((hx, hy, FLOOR_THICKNESS / 2))}" rgba="{_vec(rgba)}"/>')
+                out.append(
+                    f'      <geom type="box" pos="{_vec((cx, cy, -FLOOR_THICKNESS / 2))}" '
+                    f'size="{_vec((hx, hy, FLOOR_THICKNESS / 2))}" rgba="{_vec(rgba)}"/>'
+                )
             out.append("    </body>")
         for name, lo, hi in self.walls:
-            out.append(f'    <geom name="{name}" type="box" pos="{_vec((lo + hi) / 2)}" size="{_vec((hi - lo) / 2)}" '
-                       f'rgba="{_vec(V.STRUCTURE_RGBA)}"/>')
+            out.append(
+                f'    <geom name="{name}" type="box" pos="{_vec((lo + hi) / 2)}" '
+                f'size="{_vec((hi - lo) / 2)}" rgba="{_vec(V.STRUCTURE_RGBA)}"/>'
+            )
         for name, c, h in self.doors:
-            out.append(f'    <site name="{name}" type="box" pos="{_vec(c)}" size="{_vec(h)}" rgba="0.2 0.8 0.2 0.2" '
-                       'group="4"/>')
+            out.append(
+                f'    <site name="{name}" type="box" pos="{_vec(c)}" size="{_vec(h)}" rgba="0.2 0.8 0.2 0.2" '
+                'group="4"/>'
+            )
         for k, (x, y, yaw) in enumerate(self.starts):
-            out.append(f'    <site name="start:{k}" pos="{_vec((x, y, 0.1))}" euler="0 0 {_f(yaw)}" size="0.1" '
-                       'rgba="0.9 0.1 0.9 0.5" group="4"/>')
+            out.append(
+                f'    <site name="start:{k}" pos="{_vec((x, y, 0.1))}" euler="0 0 {_f(yaw)}" size="0.1" '
+                'rgba="0.9 0.1 0.9 0.5" group="4"/>'
+            )
         for name, x, y, yaw, parts in self.furniture:
             out.append(f'    <body name="{name}" pos="{_vec((x, y, 0))}" euler="0 0 {_f(yaw)}">')
             slot_k: dict[str, int] = {}
@@ -403,20 +445,28 @@ class SceneWriter:
                 if p.is_slot:
                     j = slot_k.get(p.kind, 0)
                     slot_k[p.kind] = j + 1
-                    out.append(f'      <site name="{name}:{p.kind}:{j}" type="box" pos="{_vec(c)}" size="{_vec(h)}" '
-                               'rgba="1 0.6 0 0.15" group="3"/>')
+                    out.append(
+                        f'      <site name="{name}:{p.kind}:{j}" type="box" pos="{_vec(c)}" size="{_vec(h)}" '
+                        'rgba="1 0.6 0 0.15" group="3"/>'
+                    )
                 elif p.kind == "capsule":
                     r = h[0]
-                    out.append(f'      <geom type="capsule" pos="{_vec(c)}" size="{_f(r)} {_f(h[2] - r)}" '
-                               f'rgba="{_vec(p.rgba)}"/>')
+                    out.append(
+                        f'      <geom type="capsule" pos="{_vec(c)}" size="{_f(r)} {_f(h[2] - r)}" '
+                        f'rgba="{_vec(p.rgba)}"/>'
+                    )
                 else:
-                    out.append(f'      <geom type="box" pos="{_vec(c)}" size="{_vec(h)}" rgba="{_vec(p.rgba)}"/>')
+                    out.append(
+                        f'      <geom type="box" pos="{_vec(c)}" size="{_vec(h)}" rgba="{_vec(p.rgba)}"/>'
+                    )
             out.append("    </body>")
         for i, (name, cat) in enumerate(self.pool):
             shape = V.OBJECT_SHAPES[cat]
             out.append(f'    <body name="{name}" mocap="true" pos="{_vec((0.5 * i, 0, PARK_Z))}">')
-            out.append(f'      <geom type="{shape.geom}" size="{_vec(shape.size)}" rgba="{_vec(shape.rgba)}" '
-                       'contype="0" conaffinity="0"/>')
+            out.append(
+                f'      <geom type="{shape.geom}" size="{_vec(shape.size)}" rgba="{_vec(shape.rgba)}" '
+                'contype="0" conaffinity="0"/>'
+            )
             out.append("    </body>")
         out += ["  </worldbody>", "</mujoco>", ""]
         return "\n".join(out)

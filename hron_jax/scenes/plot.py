@@ -27,13 +27,24 @@ def plot_topdown(scene, ax, labels=True, slots=True, objects=True):
         for f in scene.room_floors[r][scene.room_floor_valid[r]]:
             _rect(ax, f[:2], f[2:], facecolor=V.ROOM_RGBA[cat], edgecolor="none", zorder=0)
         if labels:
-            big = np.argmax((scene.room_floors[r, :, 2] - scene.room_floors[r, :, 0])
-                            * (scene.room_floors[r, :, 3] - scene.room_floors[r, :, 1])
-                            * scene.room_floor_valid[r])
+            big = np.argmax(
+                (scene.room_floors[r, :, 2] - scene.room_floors[r, :, 0])
+                * (scene.room_floors[r, :, 3] - scene.room_floors[r, :, 1])
+                * scene.room_floor_valid[r]
+            )
             f = scene.room_floors[r, big]
             area = scene.room_area()[r]
-            ax.text((f[0] + f[2]) / 2, (f[1] + f[3]) / 2, f"{scene.names[r][5:]}\n{area:.1f} m²",
-                    ha="center", va="center", fontsize=7, color="0.25", zorder=6, alpha=0.8)
+            ax.text(
+                (f[0] + f[2]) / 2,
+                (f[1] + f[3]) / 2,
+                f"{scene.names[r][5:]}\n{area:.1f} m²",
+                ha="center",
+                va="center",
+                fontsize=7,
+                color="0.25",
+                zorder=6,
+                alpha=0.8,
+            )
     structure = scene.geom_instance < 0
     for g in np.nonzero(structure)[0]:
         lo, hi = c[g, :2] - h[g, :2], c[g, :2] + h[g, :2]
@@ -43,27 +54,64 @@ def plot_topdown(scene, ax, labels=True, slots=True, objects=True):
         cat = V.FURNITURE[scene.vocab_index[i]]
         gs = np.nonzero(scene.geom_instance == i)[0]
         for g in gs[np.argsort(c[gs, 2] + h[gs, 2])]:  # higher geoms on top
-            _rect(ax, c[g, :2] - h[g, :2], c[g, :2] + h[g, :2], facecolor=V.FURNITURE_RGBA[cat][:3],
-                  edgecolor="k", linewidth=0.2, alpha=0.9, zorder=2)
+            _rect(
+                ax,
+                c[g, :2] - h[g, :2],
+                c[g, :2] + h[g, :2],
+                facecolor=V.FURNITURE_RGBA[cat][:3],
+                edgecolor="k",
+                linewidth=0.2,
+                alpha=0.9,
+                zorder=2,
+            )
         if labels:
-            ax.text(*scene.aabb_center[i, :2], scene.names[i].split(":", 1)[1], fontsize=4.5,
-                    ha="center", va="center", zorder=7, color="k")
+            ax.text(
+                *scene.aabb_center[i, :2],
+                scene.names[i].split(":", 1)[1],
+                fontsize=4.5,
+                ha="center",
+                va="center",
+                zorder=7,
+                color="k",
+            )
     if slots:
         for k in range(scene.num_slots):
             col = _SLOT_COLOURS[int(scene.slot_relation[k])]
             lo = scene.slot_center[k, :2] - scene.slot_half[k, :2]
-            _rect(ax, lo, lo + 2 * scene.slot_half[k, :2], facecolor="none", edgecolor=col, linewidth=0.5,
-                  linestyle="--", zorder=4)
+            _rect(
+                ax,
+                lo,
+                lo + 2 * scene.slot_half[k, :2],
+                facecolor="none",
+                edgecolor=col,
+                linewidth=0.5,
+                linestyle="--",
+                zorder=4,
+            )
     for d in range(len(scene.door_names)):
         lo = scene.door_center[d, :2] - scene.door_half[d, :2]
-        _rect(ax, lo, lo + 2 * scene.door_half[d, :2], facecolor="tab:green", alpha=0.35, edgecolor="g",
-              linewidth=0.5, zorder=5)
+        _rect(
+            ax,
+            lo,
+            lo + 2 * scene.door_half[d, :2],
+            facecolor="tab:green",
+            alpha=0.35,
+            edgecolor="g",
+            linewidth=0.5,
+            zorder=5,
+        )
     if objects:
         for i in range(scene.num_rooms + scene.num_furniture, scene.num_nodes):
             m = scene.mocap_id[i]
             pos = scene.model.body_pos[scene.body_id[i]] if m < 0 else scene.body_pos[i]
             if pos[2] > -1:
-                ax.plot(*pos[:2], "o", ms=3, color=V.OBJECT_SHAPES[V.OBJECTS[scene.vocab_index[i]]].rgba[:3], zorder=8)
+                ax.plot(
+                    *pos[:2],
+                    "o",
+                    ms=3,
+                    color=V.OBJECT_SHAPES[V.OBJECTS[scene.vocab_index[i]]].rgba[:3],
+                    zorder=8,
+                )
     for p, yaw in zip(scene.start_pos, scene.start_yaw):
         ax.arrow(p[0], p[1], 0.4 * np.cos(yaw), 0.4 * np.sin(yaw), width=0.05, color="m", zorder=9)
     lo, hi = scene.bounds[0, :2], scene.bounds[1, :2]

@@ -28,7 +28,9 @@ def free_grid(lo, hi, obstacles, radius, res=0.05):
     X, Y = np.meshgrid(xs, ys)
     free = np.ones(X.shape, bool)
     for o in np.asarray(obstacles, float).reshape(-1, 2, 2):
-        free &= ~((X > o[0, 0] - radius) & (X < o[1, 0] + radius) & (Y > o[0, 1] - radius) & (Y < o[1, 1] + radius))
+        free &= ~(
+            (X > o[0, 0] - radius) & (X < o[1, 0] + radius) & (Y > o[0, 1] - radius) & (Y < o[1, 1] + radius)
+        )
     return free, xs, ys
 
 
