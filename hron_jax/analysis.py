@@ -15,11 +15,15 @@ Shapes: B episodes, T recorded steps (1 for the one-step choice task), N padded 
 edges, L HGT layers, H heads, K = len(graph_types.EDGE_TYPES) edge types.
 
 What is measured. HGT attention alpha[e, h] is a softmax over the live incoming edges of the
-edge's receiver (hron_jax.models.gnn.HGTConv), so every receiver with a live in-edge hands out
-exactly one unit of attention per head and layer. Two reductions follow from that:
+edge's receiver (hron_jax.models.gnn.HGTConv, hgt_softmax='joint'), or over those of the edge's
+relation (edge type, sender type, receiver type) only ('per_relation', the paper's PyG <= 2.2), so
+every receiver hands out exactly one unit of attention per head and layer (per incoming relation
+under 'per_relation'). Two reductions
+follow from that:
   * per edge type: the share of all attention mass that flows along edges of type k, next to the
-    share a *uniform* attention (1 / in-degree per edge, i.e. mean aggregation) would give on the
-    same graphs. The ratio says which relations a layer prefers beyond how common they are.
+    share a *uniform* attention (1 / in-degree per edge, in-degree counted in the same softmax
+    group, i.e. mean aggregation) would give on the same graphs. The ratio says which relations a
+    layer prefers beyond how common they are.
   * per node: attention *received* = sum of alpha over the node's outgoing edges (how much its
     neighbours listen to it), again next to the uniform value.
 Task-driven pooling weights are the fixed 0/1 indicator of goal categories (models/pooling.py);
@@ -160,6 +164,7 @@ class Record:
     end: np.ndarray
     states: Any = None
     env: Any = None
+    hgt_softmax: str = 'joint'  # the softmax groups of alpha (ModelConfig.hgt_softmax)
 
     @property
     def num_layers(self) -> int:
@@ -244,6 +249,7 @@ def collect(
     return Record(
         task=run.config.task,
         pooling=cfg.pooling,
+        hgt_softmax=cfg.hgt_softmax,
         category=traj['category'],
         node_type=traj['node_type'],
         node_mask=traj['node_mask'].astype(bool),
@@ -295,12 +301,21 @@ def _segment_sum(values, index, size):
 
 
 def uniform_alpha(rec: Record) -> np.ndarray:
-    """f32[B,T,M]: 1 / (live in-degree of the receiver) on live edges, 0 elsewhere: the attention
-    of mean aggregation, the null model that HGT attention is compared with."""
+    """f32[B,T,M]: 1 / (live in-degree of the receiver, counted within the edge's softmax group:
+    all its in-edges, or those of the edge's relation under 'per_relation') on live edges, 0 elsewhere:
+    the attention of mean aggregation, the null model that HGT attention is compared with."""
     live = live_edges(rec)
     n = rec.node_mask.shape[-1]
-    indeg = _segment_sum(live.astype(np.float64), rec.receivers, n)
-    d = np.take_along_axis(indeg, rec.receivers, -1)
+    group, size = rec.receivers, n
+    if rec.hgt_softmax == 'per_relation':  # groups: (receiver, relation triple), as HGTConv's
+        st = np.take_along_axis(rec.node_type, rec.senders, -1)
+        rt = np.take_along_axis(rec.node_type, rec.receivers, -1)
+        et = np.clip(rec.edge_type, 0, GT.NUM_EDGE_TYPES - 1)
+        rel = np.maximum(GT.RELATION_INDEX[et, np.clip(st, 0, 2), np.clip(rt, 0, 2)], 0)
+        k = GT.NUM_RELATIONS
+        group, size = rec.receivers * k + rel, n * k
+    indeg = _segment_sum(live.astype(np.float64), group, size)
+    d = np.take_along_axis(indeg, group, -1)
     return np.where(live, 1.0 / np.maximum(d, 1.0), 0.0)
 
 

@@ -26,6 +26,7 @@ from hron_jax.run_config import (
     DEFAULT_MODEL,
     DEFAULT_TASK,
     MODELS,
+    PRESETS,
     TASK_DEFAULTS,
     TrainConfig,
     default_run_dir,
@@ -68,8 +69,9 @@ FIELDS = {
     'ent_coef': 'ppo.ent_coef',
     'vf_coef': 'ppo.vf_coef',
     'max_grad_norm': 'ppo.max_grad_norm',
+    'preset': 'preset',
 }
-_OPTION_PREFIXES = {'env_option': 'env.', 'model_option': 'network.'}
+_OPTION_PREFIXES = {'env_option': 'env.', 'model_option': 'network.', 'ppo_option': 'ppo.'}
 
 
 def option_name(field: str) -> str:
@@ -149,6 +151,13 @@ def build_parser(prog: str = 'train.py') -> argparse.ArgumentParser:
     )
     g = p.add_argument_group('run')
     g.add_argument('--task', choices=TASKS, help=f'task (default {DEFAULT_TASK})')
+    g.add_argument(
+        '--preset',
+        choices=tuple(PRESETS),
+        help="settings applied under the other options: 'paper' = the paper release's camera "
+        '(128x128), HGT softmax (per relation) and PPO (RLlib: 8 envs x 512 steps, 30 epochs, '
+        'minibatch 128, lr 1e-4, KL penalty); default: the faster per-task defaults below',
+    )
     g.add_argument('--model', choices=MODELS, help=f'model variant (default {DEFAULT_MODEL})')
     g.add_argument(
         '--scene',
@@ -213,7 +222,13 @@ def build_parser(prog: str = 'train.py') -> argparse.ArgumentParser:
     h.add_argument('--clip-eps', type=float)
     h.add_argument('--ent-coef', type=float)
     h.add_argument('--vf-coef', type=float)
-    h.add_argument('--max-grad-norm', type=float)
+    h.add_argument('--max-grad-norm', type=float, help='global-norm gradient clipping (0: none)')
+    h.add_argument(
+        '--ppo-option',
+        action='append',
+        metavar='NAME=VALUE',
+        help='any other PPOConfig field, e.g. kl_coeff=0.2, advantage_norm=batch; repeatable',
+    )
     return p
 
 

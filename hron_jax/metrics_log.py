@@ -4,6 +4,7 @@
     log = MetricsLog(run_dir, resume_update)    metrics.jsonl (source of truth), metrics.csv, tb/
     row = log.append(update, summary, wall_time, steps_per_s)      mean / std over seeds + per seed
     plot_learning_curves({label: rows}, path)    SR and return vs env steps, mean +- std over seeds
+    recent_success(rows, after_update) -> (SR, episodes)   over the rows after an update
 
 A resumed run rewinds the log to the update it resumes from (rows written after that checkpoint
 are replayed by the training that follows), so the files equal those of an uninterrupted run.
@@ -42,6 +43,17 @@ def summarize_chunk(metrics: dict) -> dict[str, np.ndarray]:
         else:
             out[k] = v.mean(-1)
     return out
+
+
+def recent_success(rows: list[dict], after_update: int) -> tuple[float, float]:
+    """(success rate, episodes) over the episodes of the rows logged after `after_update`: each
+    row's mean success weighted by its episode count (both means over seeds)."""
+    hits = episodes = 0.0
+    for r in rows:
+        if r['update'] > after_update and r.get('success') is not None and r.get('episodes'):
+            hits += r['success'] * r['episodes']
+            episodes += r['episodes']
+    return (hits / episodes if episodes else float('nan')), episodes
 
 
 def _num(x):

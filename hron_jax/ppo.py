@@ -18,6 +18,14 @@ env step), GAE, then update_epochs passes over num_minibatches shuffled minibatc
 lax.scan) of the clipped PPO objective + clipped value loss - entropy bonus, with global-norm
 gradient clipping and Adam.
 
+The loss has two styles in one config (PPOConfig): PureJaxRL / CleanRL's (the defaults: PPO2
+value clipping by clip_eps, advantages standardised per minibatch, gradient clipping, entropy
+bonus) and RLlib's PPO of 2022, which the paper's release ran (hron_jax.run_config's `paper`
+preset): the squared value error clamped at vf_loss_clip (RLlib's vf_clip_param), advantages
+standardised once over the whole rollout, no gradient clipping, and an adaptive penalty
+kl_coeff * KL(old || new) (exact categorical KL) whose coefficient grows x1.5 after an update whose
+last epoch's mean KL exceeds 2 kl_target and halves below kl_target / 2 (RLlib's update_kl).
+
 Termination vs truncation (as in Brax, but exact): an env step that truncates (time limit) is done,
 so the value of the next obs (already the reset obs) is not used; instead the rollout evaluates the
 value of the pre-reset final obs (``env.final_obs(state)``: AutoResetWrapper's info['final_obs'], or
@@ -28,8 +36,9 @@ where no env truncates (under vmap over seeds the cond becomes a select and alwa
 metrics (one entry per update, each f32[n_updates]): the episode metrics (envs.base.EPISODE_METRICS:
 'success', 'spl', 'episode_length', 'path_length', 'return') are means over the episodes completed
 during that update's rollout (NaN when none completed), 'episodes' their count, 'reward' the mean
-per-step reward, 'env_steps' the cumulative number of env steps, and the loss terms averaged over
-epochs and minibatches.
+per-step reward, 'env_steps' the cumulative number of env steps, 'kl_coeff' the penalty's
+coefficient during the update, 'kl_last_epoch' the mean KL its adaptation used, and the loss
+terms ('kl' the exact KL(old || new)) averaged over epochs and minibatches.
 
 Everything is deterministic given the rng: chunked updates give the same result as one-shot training.
 """
@@ -50,6 +59,8 @@ from hron_jax.envs.base import EPISODE_METRICS, AutoResetWrapper
 from hron_jax.errors import ConfigError
 from hron_jax.rollout import unroll
 
+ADVANTAGE_NORMS = ('minibatch', 'batch', 'none')
+
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
@@ -64,12 +75,20 @@ class PPOConfig:
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
     clip_value: bool = True  # PPO2-style clipped value loss (same clip_eps)
+    vf_loss_clip: float = 0.0  # > 0: each sample's squared value error is clamped here (RLlib)
     ent_coef: float = 0.01
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    normalize_advantages: bool = True  # per minibatch
+    vf_coef: float = 0.5  # on 0.5 * squared error
+    max_grad_norm: float = 0.5  # global-norm gradient clipping; 0: none
+    advantage_norm: str = 'minibatch'  # standardise advantages per 'minibatch', per 'batch', or 'none'
+    kl_coeff: float = 0.0  # initial coefficient of the adaptive KL(old || new) penalty; 0: none
+    kl_target: float = 0.01  # the coefficient x1.5 after an update with KL > 2 target, x0.5 below target / 2
+    adam_eps: float = 1e-5
 
     def __post_init__(self):
+        if self.advantage_norm not in ADVANTAGE_NORMS:
+            raise ConfigError(
+                'advantage_norm', f'expected one of {ADVANTAGE_NORMS}, got {self.advantage_norm!r}'
+            )
         if min(self.num_envs, self.num_steps, self.num_minibatches) < 1:
             raise ConfigError(
                 'num_envs' if self.num_envs < 1 else 'num_steps' if self.num_steps < 1 else 'num_minibatches',
@@ -110,11 +129,13 @@ class RunnerState:
     env_state: Any  # batched EnvState, leading axis num_envs
     rng: jax.Array
     update: jax.Array  # i32, number of updates done
+    kl_coeff: jax.Array  # f32, the KL penalty's current coefficient (adapted after each update)
 
 
 class Transition(NamedTuple):
     obs: Any
     action: jax.Array
+    logits: jax.Array  # the acting policy's, for the exact KL(old || new) of the penalty
     log_prob: jax.Array
     value: jax.Array
     reward: jax.Array
@@ -170,7 +191,8 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         env = AutoResetWrapper(env)
     num_opt_steps = config.num_updates * config.update_epochs * config.num_minibatches
     lr = optax.linear_schedule(config.lr, 0.0, num_opt_steps) if config.anneal_lr else config.lr
-    tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
+    adam = optax.adam(lr, eps=config.adam_eps)
+    tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), adam) if config.max_grad_norm else adam
     v_reset = jax.vmap(env.reset)
     v_step = jax.vmap(env.step)
     v_final_obs = jax.vmap(env.final_obs)
@@ -195,6 +217,7 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             env_state=env_state,
             rng=rng,
             update=jnp.zeros((), jnp.int32),
+            kl_coeff=jnp.asarray(config.kl_coeff, jnp.float32),
         )
 
     def rollout(params, env_state, rng, num_steps, greedy=False):
@@ -202,7 +225,7 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             logits, value = apply(params, state.obs)
             action = jnp.argmax(logits, -1) if greedy else jax.random.categorical(key, logits)
             log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], -1)[:, 0]
-            return action, {'log_prob': log_prob, 'value': value}
+            return action, {'logits': logits, 'log_prob': log_prob, 'value': value}
 
         def record(state, action, extras, nxt):
             # Bootstrap value of truncated episodes, computed only in steps where one truncates.
@@ -217,13 +240,13 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         env_state, rng, traj = unroll(v_step, env_state, policy, rng, num_steps, record=record)
         return env_state, rng, Transition(**traj)
 
-    def loss_fn(params, mb: Transition, adv, target):
+    def loss_fn(params, mb: Transition, adv, target, kl_coeff):
         logits, value = apply(params, mb.obs)
         logp_all = jax.nn.log_softmax(logits)
         logp = jnp.take_along_axis(logp_all, mb.action[:, None], -1)[:, 0]
         log_ratio = logp - mb.log_prob
         ratio = jnp.exp(log_ratio)
-        if config.normalize_advantages:
+        if config.advantage_norm == 'minibatch':
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
         pg_loss = -jnp.minimum(
             ratio * adv, jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * adv
@@ -232,9 +255,15 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         if config.clip_value:
             v_clipped = mb.value + jnp.clip(value - mb.value, -config.clip_eps, config.clip_eps)
             v_err = jnp.maximum(v_err, jnp.square(v_clipped - target))
+        if config.vf_loss_clip > 0:
+            v_err = jnp.minimum(v_err, config.vf_loss_clip)
         value_loss = 0.5 * v_err.mean()
         entropy = -(jnp.exp(logp_all) * logp_all).sum(-1).mean()
+        old_logp_all = jax.nn.log_softmax(mb.logits)
+        kl = (jnp.exp(old_logp_all) * (old_logp_all - logp_all)).sum(-1).mean()
         loss = pg_loss + config.vf_coef * value_loss - config.ent_coef * entropy
+        if config.kl_coeff > 0:
+            loss = loss + kl_coeff * kl
         aux = {
             'loss': loss,
             'pg_loss': pg_loss,
@@ -242,6 +271,7 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             'entropy': entropy,
             # k3 estimator of KL(old || new): non-negative, low variance.
             'approx_kl': ((ratio - 1.0) - log_ratio).mean(),
+            'kl': kl,
             'clip_frac': (jnp.abs(ratio - 1.0) > config.clip_eps).mean(),
         }
         return loss, aux
@@ -262,6 +292,8 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             config.gae_lambda,
         )
 
+        if config.advantage_norm == 'batch':  # once over the whole rollout, as RLlib does
+            adv = (adv - adv.mean()) / jnp.maximum(adv.std(), 1e-4)
         # Flatten [T, B] -> [T*B]; the metrics are not needed by the loss.
         batch = (traj._replace(metrics={}), adv, target)
         batch = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), batch)
@@ -279,7 +311,7 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
 
             def minibatch(carry, mb):
                 params, opt_state = carry
-                grads, aux = grad_fn(params, *mb)
+                grads, aux = grad_fn(params, *mb, runner.kl_coeff)
                 updates, opt_state = tx.update(grads, opt_state, params)
                 return (optax.apply_updates(params, updates), opt_state), aux
 
@@ -295,7 +327,19 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         metrics['reward'] = traj.reward.mean()
         update = runner.update + 1
         metrics['env_steps'] = (update * config.batch_size).astype(jnp.float32)
-        runner = RunnerState(params=params, opt_state=opt_state, env_state=env_state, rng=rng, update=update)
+        # RLlib's adaptive KL coefficient, from the mean KL of the update's last epoch.
+        kl = aux['kl'][-1].mean()
+        factor = jnp.where(kl > 2.0 * config.kl_target, 1.5, jnp.where(kl < 0.5 * config.kl_target, 0.5, 1.0))
+        metrics['kl_coeff'] = runner.kl_coeff
+        metrics['kl_last_epoch'] = kl
+        runner = RunnerState(
+            params=params,
+            opt_state=opt_state,
+            env_state=env_state,
+            rng=rng,
+            update=update,
+            kl_coeff=runner.kl_coeff * factor if config.kl_coeff > 0 else runner.kl_coeff,
+        )
         return runner, metrics
 
     def update_chunk(runner: RunnerState, n_updates: int):

@@ -82,6 +82,41 @@ TASK_DEFAULTS: dict[str, dict] = {
     'directed': dict(ppo=_NAV_PPO, log_every=1, checkpoint_every=20),
     'exploratory': dict(ppo=_NAV_PPO, log_every=1, checkpoint_every=20),
 }
+
+# Named sets of overrides applied before the user's (TrainConfig.preset records which). 'paper':
+# what the paper's release ran (PyTorch, PyG <= 2.2, RLlib's PPO of early 2022, 8 envs): its
+# camera, the per-relation HGT softmax of PyG <= 2.2, its PPO settings, and RLlib's defaults for
+# what the release left unset (ray 1.x PPO: clip_param 0.3, vf_clip_param 10 on the squared value
+# error, vf_loss_coeff 1, entropy_coeff 0, kl_coeff 0.2 with kl_target 0.01, no grad_clip,
+# advantages standardised over the train batch, torch Adam eps 1e-8).
+_PAPER_PPO = {
+    'ppo.num_envs': 8,
+    'ppo.num_steps': 512,  # train_batch_size 4096 = 8 envs x 512 steps
+    'ppo.num_minibatches': 32,  # sgd_minibatch_size 128
+    'ppo.update_epochs': 30,
+    'ppo.lr': 1e-4,
+    'ppo.gamma': 0.99,
+    'ppo.gae_lambda': 0.9,
+    'ppo.clip_eps': 0.3,
+    'ppo.clip_value': False,
+    'ppo.vf_loss_clip': 10.0,
+    'ppo.vf_coef': 2.0,  # RLlib's vf_loss_coeff 1.0 on the squared error; ours halves it
+    'ppo.ent_coef': 0.0,
+    'ppo.kl_coeff': 0.2,
+    'ppo.kl_target': 0.01,
+    'ppo.max_grad_norm': 0.0,
+    'ppo.advantage_norm': 'batch',
+    'ppo.adam_eps': 1e-8,
+    'network.hgt_softmax': 'per_relation',
+}
+PRESETS: dict[str, dict[str, dict]] = {
+    'default': {'choice': {}, 'navigation': {}},
+    'paper': {
+        'choice': _PAPER_PPO,
+        'navigation': {**_PAPER_PPO, 'env.camera.width': 128, 'env.camera.height': 128},
+    },
+}
+
 DEFAULT_TASK = 'exploratory'
 DEFAULT_MODEL = 'rgbd_sg_attn'
 MODELS = tuple(VARIANTS)
@@ -117,7 +152,11 @@ RANGES: dict[str, tuple[str, Any]] = {
     'ppo.clip_eps': _POSITIVE,
     'ppo.ent_coef': _NON_NEGATIVE,
     'ppo.vf_coef': _NON_NEGATIVE,
-    'ppo.max_grad_norm': _POSITIVE,
+    'ppo.max_grad_norm': ('>= 0 (0: no clipping)', lambda v: v >= 0),
+    'ppo.vf_loss_clip': ('>= 0 (0: no clamp)', lambda v: v >= 0),
+    'ppo.kl_coeff': ('>= 0 (0: no KL penalty)', lambda v: v >= 0),
+    'ppo.kl_target': _POSITIVE,
+    'ppo.adam_eps': _POSITIVE,
     'env.max_steps': _AT_LEAST_1,
     'env.success_distance': _POSITIVE,
     'env.num_distractors': _NON_NEGATIVE,
@@ -164,6 +203,7 @@ class TrainConfig:
     checkpoint_every: int = 20  # updates
     keep_checkpoints: int = 3
     fast_compile: bool = False  # FAST_COMPILE XLA options (tests, debugging)
+    preset: str = 'default'  # the PRESETS entry applied under the user's overrides
 
     @property
     def scene_path(self) -> str | None:
@@ -215,6 +255,10 @@ def make_config(
     if size is not None:  # a square camera (ChoiceConfig has a field of that name)
         overrides.setdefault('env.camera.width', size)
         overrides.setdefault('env.camera.height', size)
+    preset = overrides.pop('preset', 'default')
+    if preset not in PRESETS:
+        raise ConfigError('preset', f'unknown preset {preset!r}; valid: {", ".join(PRESETS)}')
+    overrides = {**PRESETS[preset]['choice' if task == 'choice' else 'navigation'], **overrides}
 
     defaults = _defaults(task, model)
     flat = _flatten(dataclasses.asdict(defaults))
@@ -234,6 +278,7 @@ def make_config(
         flat[field] = value
     if flat['scene'] is not None:
         flat['scene'] = portable_path(flat['scene'])
+    flat['preset'] = preset
     return _build(defaults, flat, '')
 
 
@@ -367,7 +412,11 @@ def _upgrade(d: dict) -> dict:
     out['env.distractors'] = d.get('distractors', False)
     if d.get('premap'):
         out['env.premap'] = True
-    out.update({f'ppo.{k}': v for k, v in d.get('ppo', {}).items() if k != 'seed'})
+    ppo = dict(d.get('ppo', {}))
+    ppo.pop('seed', None)
+    if 'normalize_advantages' in ppo:
+        ppo['advantage_norm'] = 'minibatch' if ppo.pop('normalize_advantages') else 'none'
+    out.update({f'ppo.{k}': v for k, v in ppo.items()})
     return out
 
 

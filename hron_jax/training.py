@@ -41,7 +41,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hron_jax.errors import NonFiniteError, UsageError
-from hron_jax.metrics_log import MetricsLog, plot_learning_curves, summarize_chunk
+from hron_jax.metrics_log import MetricsLog, plot_learning_curves, recent_success, summarize_chunk
 from hron_jax.run_config import RESUMABLE, TrainConfig, build_env, build_network, config_diff, run_label
 from hron_jax.run_dir import checkpoint_manager, load_config, restore_runner, save_config, storable
 
@@ -332,7 +332,7 @@ class Trainer:
                     self.update, summary, wall0 + time.perf_counter() - t_run, n * steps_per_update / dt
                 )
                 bar.update(n * steps_per_update)
-                bar.set_postfix_str(_postfix(row, self.update, total), refresh=False)
+                bar.set_postfix_str(self._postfix(row), refresh=False)
                 if self.update - last_ckpt >= c.checkpoint_every or self.update == total:
                     self.checkpoint()
                     last_ckpt = self.update
@@ -346,6 +346,22 @@ class Trainer:
         bar.close()
         self.checkpoint()
         return self.runner
+
+    def _postfix(self, row: dict) -> str:
+        """Progress-bar text. Its SR is over the episodes that ended in the last episode length's
+        worth of updates, and only once every env has had time to end one: before that, only
+        episodes that ended early (successes, wrong objects) can have finished, so the success
+        rate among them says nothing about the policy (a random policy shows 1.0)."""
+        c = self.config
+        steps_per_env = self.update * c.ppo.num_steps
+        window = -(-c.env.max_steps // c.ppo.num_steps)  # updates spanning one full episode
+        sr, episodes = recent_success(self.metrics.rows, self.update - window)
+        if steps_per_env < c.env.max_steps:
+            sr_text = f'SR n/a until {c.env.max_steps} steps/env ({episodes:.0f} early eps)'
+        else:
+            sr_text = f'SR {sr:.3f} ({episodes:.0f} eps)' if episodes else 'SR - (0 eps)'
+        ret = row.get('return')
+        return f'upd {self.update}/{c.num_updates} {sr_text} ret {"-" if ret is None else format(ret, ".2f")}'
 
     def _check_finite(self, nonfinite) -> None:
         """NonFiniteError naming the first update (and seeds) whose loss or parameters are NaN /
@@ -366,11 +382,3 @@ class Trainer:
         self.manager.wait_until_finished()
         self.manager.close()
         self.metrics.close()
-
-
-def _postfix(row: dict, update: int, total: int) -> str:
-    def f(k, fmt):
-        v = row.get(k)
-        return '-' if v is None else format(v, fmt)
-
-    return f'upd {update}/{total} SR {f("success", ".3f")} ret {f("return", ".2f")}'

@@ -362,3 +362,53 @@ def test_vmapped_init_with_orthogonal_model_does_not_hang():
     runners = jax.jit(jax.vmap(ppo.init))(keys)
     single = jax.jit(ppo.init)(keys[1])
     assert _max_diff(jax.tree.map(lambda x: x[1], runners.params), single.params) == 0.0
+
+
+# --- RLlib-style loss terms (the paper preset) ----------------------------------------------------
+CORRIDOR = GymnaxWrapper(Corridor(), CorridorParams(8), max_steps=12)
+
+
+def corridor_train(**kw):
+    cfg = PPOConfig(
+        **dict(
+            dict(num_envs=16, num_steps=16, update_epochs=3, num_minibatches=4, lr=3e-3, gamma=0.95),
+            total_timesteps=16 * 16 * kw.pop('updates', 8),
+            **kw,
+        )
+    )
+    return jax.jit(make_train(cfg, CORRIDOR, MLP(2)))(jax.random.PRNGKey(3))
+
+
+def test_adaptive_kl_coefficient_follows_rllibs_rule():
+    runner, m = corridor_train(kl_coeff=0.2, kl_target=0.01, updates=10)
+    coeff, kl = np.asarray(m['kl_coeff']), np.asarray(m['kl_last_epoch'])
+    assert coeff[0] == np.float32(0.2)
+    expected = coeff[:-1] * np.where(kl[:-1] > 0.02, 1.5, np.where(kl[:-1] < 0.005, 0.5, 1.0))
+    np.testing.assert_allclose(coeff[1:], expected, rtol=1e-6)
+    # The run saw both directions or a plateau, i.e. the rule was exercised, not skipped.
+    assert len(set(np.round(coeff / 0.2, 4))) > 1
+    last = kl[-1]
+    factor = 1.5 if last > 0.02 else 0.5 if last < 0.005 else 1.0
+    np.testing.assert_allclose(float(runner.kl_coeff), coeff[-1] * factor, rtol=1e-6)
+    # Without the penalty the coefficient stays put (and is not part of the loss).
+    _, m0 = corridor_train(updates=3)
+    assert np.all(np.asarray(m0['kl_coeff']) == 0.0)
+
+
+def test_value_error_clamp_bounds_the_value_loss():
+    _, clamped = corridor_train(vf_loss_clip=0.01, clip_value=False, updates=3)
+    _, free = corridor_train(clip_value=False, updates=3)
+    assert np.all(np.asarray(clamped['value_loss']) <= 0.5 * 0.01 + 1e-7)
+    assert np.asarray(free['value_loss']).max() > 0.5 * 0.01  # the clamp had something to cut
+
+
+def test_batch_advantage_norm_equals_minibatch_norm_with_one_minibatch():
+    # One minibatch: standardising the batch once or the (same) minibatch is the same up to the
+    # std floor (1e-4 vs + 1e-8); with 4 minibatches the two differ.
+    one = dict(num_minibatches=1, updates=3, max_grad_norm=0.0)
+    a, _ = corridor_train(advantage_norm='batch', **one)
+    b, _ = corridor_train(advantage_norm='minibatch', **one)
+    assert _max_diff(a.params, b.params) < 1e-4
+    c, _ = corridor_train(advantage_norm='batch', updates=3)
+    d, _ = corridor_train(advantage_norm='minibatch', updates=3)
+    assert _max_diff(c.params, d.params) > 1e-3

@@ -33,20 +33,28 @@ def fake_eval(d: Path, sr: float, spl: float):
     (d / 'eval.json').write_text(json.dumps({'summary': summary}))
 
 
-def fake_run(d: Path, seed: int, sr: float, spl: float, distractors=True, task='choice'):
-    """A run dir as train.py + eval.py leave it (only the files the report reads)."""
+def fake_run(
+    d: Path, seed: int, sr: float, spl: float, distractors=True, task='choice', model='rgbd_sg_attn', **opts
+):
+    """A run dir as train.py + eval.py leave it (only the files the report reads); opts: more
+    train.py options (config_from_args names), e.g. preset='paper' or lr=1e-3."""
     d.mkdir(parents=True)
-    cfg = config_from_args(
-        dict(
-            task=task,
-            model='rgbd_sg_attn',
-            distractors=distractors,
-            seed=seed,
-            total_steps=1024 if task == 'choice' else 4096,
-            model_option=['hidden=32'],
-        )
+    args = dict(
+        task=task,
+        model=model,
+        distractors=distractors,
+        seed=seed,
+        total_steps=1024 if task == 'choice' else 4096,
+        model_option=['hidden=32'],
     )
+    cfg = config_from_args({**args, **opts})
     (d / 'config.json').write_text(json.dumps({'config': cfg.to_dict(), 'meta': {}}))
+    write_rows(d, sr)
+    fake_eval(d / 'eval_trained', sr, spl)
+    (d / 'repro.json').write_text(json.dumps({'train_wall_s': 30.0, 'eval_wall_s': 10.0}))
+
+
+def write_rows(d: Path, sr: float):
     rows = [
         dict(
             update=u,
@@ -60,8 +68,13 @@ def fake_run(d: Path, seed: int, sr: float, spl: float, distractors=True, task='
         for u, s in ((2, 0.5), (4, sr))
     ]
     (d / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
-    fake_eval(d / 'eval_trained', sr, spl)
-    (d / 'repro.json').write_text(json.dumps({'train_wall_s': 30.0, 'eval_wall_s': 10.0}))
+
+
+CHOICE_CPU = (
+    "preset default (not the paper's settings); HGT hidden 32, 2 heads, 3 layers, joint softmax; "
+    'PPO 64 envs x 4 steps, 4 epochs, minibatch 64, lr 3e-4; 1,024 env steps / seed (the paper '
+    'states no budget for this task)'
+)
 
 
 def test_report_from_runs(R, tmp_path):
@@ -72,14 +85,139 @@ def test_report_from_runs(R, tmp_path):
     assert R.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
     text = out.read_text()
     row = next(l for l in text.splitlines() if l.startswith('| yes | SG + TD ATTN |'))
-    # Mean over seeds 0.9, std over seeds of per-seed means sqrt(2/3) * 0.1.
-    assert '0.993 ± 0.007' in row and '0.900 ± 0.082' in row and '3 x 50' in row
-    assert '1,024' in row and '| 8 s |' in row and '40 s' in row and 'hidden=32' in row
+    # Mean over seeds 0.9; sample std (ddof=1) of the per-seed means 0.1 (ddof=0 would be 0.082).
+    assert '0.993 ± 0.007' in row and '0.900 ± 0.100 (n=3)' in row and '3 x 50' in row
+    assert '1,024' in row and '| 8 s |' in row and '40 s' in row
+    # The Config column says exactly what ran, from the runs' config.json.
+    assert row.endswith(f'| {CHOICE_CPU} |')
+    assert 'paper model' not in text and "= the paper's settings" not in row
     assert 'SG + TD ATTN + distractors: 0: 1.000, 1: 0.900, 2: 0.800' in text
     assert (out.parent / 'reproduction' / 'table1_curves.png').is_file()
-    # Cells without runs are listed as not run, with their commands; nothing is invented.
+    # Cells without runs are listed as not run, with the paper profile's commands; nothing is
+    # invented, and an estimate from runs under other settings says so.
     assert text.count('not yet run') >= 2 * 15
-    assert 'python train.py --task exploratory --model rgbd_sg_attn --seed $SEED' in text
+    assert 'python train.py --task exploratory --model rgbd_sg_attn --seed $SEED --preset paper' in text
+    assert 'measured with preset default' in text and 'a rough figure' in text
+    # The protocol names the paper's settings, and the cpu profile says it is not them.
+    assert '`train.py --preset paper` (navigation: camera 128x128; HGT hidden 128, 2 heads, 3 layers' in text
+    assert "Profile `cpu`, not the paper's settings" in text
+
+
+def test_one_seed_has_no_spread_and_old_config_files_are_read(R, tmp_path):
+    """A pre-tree (flat) config.json, as the runs of 2026-11-23 wrote it, is read and described."""
+    runs = tmp_path / 'runs'
+    d = runs / 'directed_rgbd_sg_dist' / 's0'
+    d.mkdir(parents=True)
+    ppo = dict(
+        num_envs=64,
+        num_steps=64,
+        total_timesteps=131072,
+        update_epochs=4,
+        num_minibatches=32,
+        lr=2.5e-4,
+        anneal_lr=False,
+        gamma=0.99,
+        gae_lambda=0.9,
+        clip_eps=0.2,
+        clip_value=True,
+        ent_coef=0.01,
+        vf_coef=0.5,
+        max_grad_norm=0.5,
+        normalize_advantages=True,
+        seed=0,
+    )
+    old = dict(
+        task='directed',
+        model='rgbd_sg',
+        scene='scenes/symmetric_room.xml',
+        distractors=True,
+        premap=False,
+        env_options=[],
+        model_options=[],
+        ppo=ppo,
+        seed=0,
+        num_seeds=1,
+        log_every=1,
+        checkpoint_every=20,
+        keep_checkpoints=3,
+        fast_compile=False,
+    )
+    (d / 'config.json').write_text(json.dumps({'config': old, 'meta': {}}))
+    write_rows(d, 0.55)
+    fake_eval(d / 'eval_trained', 0.55, 0.174)
+    cell = next(c for c in R.GRID if c.name == 'directed_rgbd_sg_dist')
+    f = R.collect_cell(runs, cell)
+    assert R._ours(f['sr']) == '0.550 (n=1, no spread)'
+    assert R.config_text(f) == (
+        "preset default (not the paper's settings); camera 32x32; HGT hidden 128, 2 heads, 3 layers, "
+        'joint softmax; PPO 64 envs x 64 steps, 4 epochs, minibatch 128, lr 2.5e-4; 131,072 env steps '
+        "/ seed (9 % of the paper's 1.5 M)"
+    )
+
+
+def test_mean_std_is_the_sample_std_with_n(R):
+    assert R._ours(R.mean_std([0.5, 0.55])) == '0.525 ± 0.035 (n=2)'  # ddof=0 would print 0.025
+    assert R._ours(R.mean_std([1.0, 0.475, 1.0])) == '0.825 ± 0.303 (n=3)'  # ddof=0: 0.247
+    assert R.mean_std([0.3]) == (0.3, None, 1)
+
+
+def test_config_text_says_paper_settings_only_when_they_ran(R, tmp_path):
+    runs = tmp_path / 'runs'
+    base = dict(distractors=False, task='directed', model='rgbd_sg_attn', model_option=[])
+    fake_run(runs / 'directed_rgbd_sg_attn' / 's0', 0, 0.9, 0.8, preset='paper', **base)
+    fake_run(runs / 'directed_rgbd_sg_attn' / 's1', 1, 0.7, 0.6, preset='paper', lr=1e-3, **base)
+    fake_run(runs / 'directed_rgbd' / 's0', 0, 0.5, 0.2, **{**base, 'model': 'rgbd'})
+    f = R.collect_cell(runs, next(c for c in R.GRID if c.name == 'directed_rgbd_sg_attn'))
+    text = R.config_text(f)
+    # Seeds that ran different configs say so, each with its own description.
+    assert (
+        text.startswith('seeds ran different configs: seed 0: preset paper (= the paper')
+        and (
+            'camera 128x128; HGT hidden 128, 2 heads, 3 layers, per_relation softmax; PPO 8 envs x 512 '
+            'steps, 30 epochs, minibatch 128, lr 1e-4, KL penalty 0.2; 4,096 env steps / seed (0.3 % of '
+            "the paper's 1.5 M)"
+        )
+        in text
+    )
+    assert "seed 1: preset paper, changed: ppo.lr (not the paper's settings)" in text and 'lr 1e-3' in text
+    # Rows of a table that ran different settings say so under the table.
+    cells = [c for c in R.GRID if c.name in ('directed_rgbd', 'directed_rgbd_sg_attn')]
+    done = [(c, R.collect_cell(runs, c)) for c in cells]
+    lines = R.table_comparison(2, done)
+    assert lines[0].startswith('The rows of this table did not all run the same settings: ')
+    assert "preset default (not the paper's settings) (RGB-D only)" in lines[0]
+
+
+def test_profiles(R, capsys, tmp_path):
+    for cell in R.GRID:
+        paper = R.profile_config('paper', cell)
+        assert '--preset paper' in ' '.join(R.train_argv(cell, 0, Path('x'), 'paper'))
+        assert paper.preset == 'paper' and R.paper_diff(paper) == []
+        assert R.paper_diff(R.profile_config('cpu', cell))  # the cheap profile is not the paper's
+    assert R.profile_steps('paper', 'directed') == 1_500_000
+    assert R.profile_steps('cpu', 'directed') == 131_072
+    assert R.main(['--plan', '--runs', str(tmp_path), '--tables', '2']) == 0
+    out = capsys.readouterr().out
+    assert "profile cpu: NOT the paper's settings" in out
+    assert "settings (cpu): preset default (not the paper's settings); camera 32x32;" in out
+
+
+def test_ordering_disagreements(R):
+    paper = {'RGB-D only': 0.417, 'RGB-D + SG': 0.425, 'RGB-D + SG + TD ATTN': 0.900}
+    ours = {'RGB-D only': 0.525, 'RGB-D + SG': 0.500, 'RGB-D + SG + TD ATTN': 0.900}
+    # Table II with distractors: RGB-D only > RGB-D + SG here, < in the paper; the others agree.
+    assert R.ordering_disagreements(ours, paper) == [('RGB-D only', 'RGB-D + SG', 0.525, 0.5, 0.417, 0.425)]
+    sentence = R.ordering_sentence('SR', ours, paper)
+    assert sentence.startswith('SR: 1 of 3 pairs of rows is NOT ordered as in the paper: ')
+    assert 'RGB-D only 0.525 > RGB-D + SG 0.500 here, 0.417 < 0.425 in the paper' in sentence
+    agree = {'RGB-D only': 0.4, 'RGB-D + SG': 0.5, 'RGB-D + SG + TD ATTN': 0.9}
+    assert R.ordering_disagreements(agree, paper) == []
+    assert R.ordering_sentence('SR', agree, paper) == 'SR: all 3 pairs of rows are ordered as in the paper.'
+    # A tie on one side only is a different order; rows the paper lacks are left out.
+    assert R.ordering_disagreements(
+        {'SG': 0.825, 'SG + TD ATTN': 0.825, 'x': 1.0}, {'SG': 0.997, 'SG + TD ATTN': 0.991}
+    ) == [('SG', 'SG + TD ATTN', 0.825, 0.825, 0.997, 0.991)]
+    assert R.ordering_sentence('SR', {'SG': 0.5}, {'SG': 0.6}) is None
 
 
 def test_plan_lists_every_cell(R, tmp_path, capsys):
@@ -137,7 +275,8 @@ def test_a_shorter_run_is_resumed_to_the_profile_budget(R, tmp_path, monkeypatch
     runs = tmp_path / 'runs'
     cell = next(c for c in R.GRID if c.name == 'exploratory_rgbd_sg_attn')
     d = runs / cell.name / 's0'
-    fake_run(d, 0, 0.5, 0.25, distractors=False, task='exploratory')  # 1,024 env steps, evaluated
+    # 1,024 env steps at the cpu profile's settings, evaluated
+    fake_run(d, 0, 0.5, 0.25, distractors=False, task='exploratory', model_option=[])
     stale = R.held_out_dir(d, R.HELD_OUT[0])
     fake_eval(stale, 0.0, 0.0)
     calls = []
@@ -156,3 +295,27 @@ def test_a_shorter_run_is_resumed_to_the_profile_budget(R, tmp_path, monkeypatch
     (d / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
     R.run_cell_seed(cell, 0, runs, 'cpu', 20)
     assert calls == []
+
+
+def test_probe_runs_the_paper_profile(R, tmp_path, monkeypatch):
+    calls = []
+
+    def fake(argv, log):
+        calls.append(argv)
+        Path(argv[argv.index('--out') + 1]).mkdir(parents=True)
+        return 1.0
+
+    monkeypatch.setattr(R, 'run_logged', fake)
+    R.main(['--probe', 'directed_rgbd_sg_attn', '--runs', str(tmp_path)])
+    argv = ' '.join(calls[0])
+    assert '--preset paper' in argv and '--total-steps 4096' in argv  # one update of 8 envs x 512
+    assert (tmp_path / '_probe' / 'directed_rgbd_sg_attn' / 'repro.json').is_file()
+
+
+def test_a_run_of_other_settings_is_not_resumed_under_a_profile(R, tmp_path, monkeypatch):
+    runs = tmp_path / 'runs'
+    cell = next(c for c in R.GRID if c.name == 'directed_rgbd_sg_attn')
+    fake_run(runs / cell.name / 's0', 0, 0.5, 0.25, distractors=False, task='directed', model_option=[])
+    monkeypatch.setattr(R, 'run_logged', lambda argv, log: pytest.fail(f'ran {argv}'))
+    with pytest.raises(SystemExit, match=r"other settings than profile 'paper' \(.*preset"):
+        R.run_cell_seed(cell, 0, runs, 'paper', 20)

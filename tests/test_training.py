@@ -8,6 +8,7 @@ subprocesses on 2 forced CPU devices with 2 vmapped seeds (they share a persiste
 only the first one compiles), and eval.py.
 """
 
+import dataclasses
 import json
 import os
 import shutil
@@ -482,6 +483,53 @@ def test_config_json_of_the_flat_format_is_upgraded():
     assert TrainConfig.from_dict(old) == new
     assert new.env.camera.width == new.env.camera.height == 8 and new.env.premap and new.distractors
     assert new.network.pooling == 'mean' and new.network.hidden == 16
+
+
+def test_paper_preset_sets_camera_hgt_and_ppo_and_flags_override_it():
+    paper = config_from_args(dict(task='exploratory', preset='paper'))
+    assert paper.preset == 'paper'
+    assert (paper.env.camera.width, paper.env.camera.height) == (128, 128)
+    assert paper.network.hgt_softmax == 'per_relation'
+    p = paper.ppo
+    assert (p.num_envs * p.num_steps, p.minibatch_size, p.update_epochs, p.lr) == (4096, 128, 30, 1e-4)
+    assert (p.gamma, p.gae_lambda, p.kl_coeff, p.max_grad_norm, p.advantage_norm) == (
+        0.99,
+        0.9,
+        0.2,
+        0.0,
+        'batch',
+    )
+    # Flags win over the preset; the rest of the preset stays; config.json keeps both.
+    mine = config_from_args(
+        dict(task='exploratory', preset='paper', num_envs=16, env_option=['image_size=64'])
+    )
+    assert mine.ppo.num_envs == 16 and mine.ppo.update_epochs == 30
+    assert (mine.env.camera.width, mine.env.camera.height) == (64, 64)
+    assert TrainConfig.from_dict(mine.to_dict()) == mine
+    # The default preset is the per-task defaults; the choice task takes the PPO part only.
+    assert config_from_args(dict(task='exploratory')).preset == 'default'
+    choice = config_from_args(dict(task='choice', preset='paper'))
+    assert choice.ppo == dataclasses.replace(paper.ppo, total_timesteps=200_000)  # its own budget
+    assert choice.network.hgt_softmax == 'per_relation'
+
+
+def test_progress_sr_waits_until_every_env_can_have_ended_an_episode():
+    from types import SimpleNamespace
+
+    config = config_from_args(dict(task='exploratory'))  # 500-step episodes, 64-step rollouts
+    rows = [
+        dict(update=u, success=s, episodes=n)
+        for u, s, n in [(1, 1.0, 3), (2, 1.0, 5), (9, 0.5, 40), (10, 0.25, 40)]
+    ]
+    postfix = lambda update: Trainer._postfix(
+        SimpleNamespace(config=config, update=update, metrics=SimpleNamespace(rows=rows[:update])), {}
+    )
+    # Update 2: 128 steps per env, only early (successful) episodes can have ended: no SR shown.
+    assert 'SR n/a until 500 steps/env (8 early eps)' in postfix(2)
+    # Update 10: 640 steps per env; the window is the last 8 updates (one episode length): 3..10.
+    assert 'SR 0.375 (80 eps)' in Trainer._postfix(
+        SimpleNamespace(config=config, update=10, metrics=SimpleNamespace(rows=rows)), {}
+    )
 
 
 # --- eval ----------------------------------------------------------------------------------------

@@ -18,21 +18,29 @@ persistent XLA cache makes seeds 1 and 2 skip compilation), and a single-seed ru
 construction identical to seed i of a multi-seed one (hron_jax.training). --from-runs reads any
 run dir layout it finds under RUNS/<cell>/ (a multi-seed run counts with all its seeds).
 
-Profiles: 'paper' = the task defaults of hron_jax.run_config (paper model: HGT hidden 128, 2 heads,
-3 layers; choice 200 k env steps, navigation 1.5 M); 'cpu' = what fits a session on the 2-core
-development machine (choice: HGT hidden 32, 20 480 env steps per seed; navigation: the paper
-model, directed 131 072 env steps per seed = 32 PPO updates, exploratory 32 768 = 8 updates, i.e.
-9 % and 2 % of the paper's budget). The report states the budget of every row. A run dir that
-exists with fewer env steps than its profile asks for is resumed to that budget (`train.py
---resume RUN --total-steps N`) and evaluated again.
+Profiles: 'paper' = `train.py --preset paper` (hron_jax.run_config.PRESETS: the paper release's
+camera 128x128, per-relation HGT softmax and RLlib PPO, 8 envs x 512 steps, 30 epochs, minibatch
+128, lr 1e-4, KL penalty; HGT hidden 128, 2 heads, 3 layers) at the paper's budget (navigation
+1.5 M env steps per seed; choice: the task default 200 k, the paper states none); 'cpu' = what fits
+a session on the 2-core development machine and is NOT the paper's settings: the task defaults
+(camera 32x32, joint HGT softmax, 64 envs, 4 epochs, lr 2.5e-4 / 3e-4) at a fraction of the budget
+(choice: HGT hidden 32, 20 480 env steps per seed; directed 131 072 = 32 PPO updates, exploratory
+32 768 = 8 updates, i.e. 9 % and 2 % of the paper's 1.5 M). The report reads every run's
+config.json (TrainConfig.from_dict, older flat files included) and states in each row exactly what
+ran: preset, camera, HGT softmax and sizes, PPO, budget. A run dir that exists with fewer env steps
+than its profile asks for is resumed to that budget (`train.py --resume RUN --total-steps N`) and
+evaluated again; one trained with other settings than the profile's is not (an error says which).
 
 Generalisation (beyond the paper): each seed of an exploratory main-model cell is also evaluated
 on the generated houses it never saw (HELD_OUT, `eval.py RUN --scene HOUSE`). Numbers are only
 ever read from run dirs: a cell without runs is listed as not run, with its commands and a cost
 estimate from measured env steps/s (its own runs, else a --probe run).
 
-Report statistics: SR / SPL = mean over all episodes of all seeds, +- std over seeds of the
-per-seed means (our reading of the paper's "averaged over 20 episodes across three random seeds").
+Report statistics: SR / SPL = mean over all episodes of all seeds +- the sample std (ddof=1) over
+seeds of the per-seed means, with n (seeds) beside it; one seed has no spread (our reading of the
+paper's "averaged over 20 episodes across three random seeds"; the paper's +- are copied as
+printed). A sentence on the ordering of the models compares every pair of rows of a setting with
+the paper (`ordering_disagreements`) and names the pairs ordered differently.
 """
 
 from __future__ import annotations
@@ -125,55 +133,213 @@ TABLE_TITLES = {
 
 # Profiles: extra train.py options per task (None: the task is not in the profile).
 PROFILES = {
-    'paper': {'choice': [], 'directed': [], 'exploratory': []},
+    'paper': {
+        'choice': ['--preset', 'paper'],
+        'directed': ['--preset', 'paper'],
+        'exploratory': ['--preset', 'paper'],
+    },
     'cpu': {
         'choice': ['--total-steps', '20480', '--model-option', 'hidden=32'],
         'directed': ['--total-steps', '131072'],
         'exploratory': ['--total-steps', '32768'],
     },
 }
+PROFILE_TEXT = {
+    'paper': "`train.py --preset paper`: the paper release's model, camera and PPO settings at the "
+    "paper's budget (navigation 1.5 M env steps per seed; choice: the task default, the paper "
+    'states none)',
+    'cpu': "NOT the paper's settings: the task defaults (preset default) at a fraction of the "
+    "paper's budget, sized for a session on the 2-core CPU",
+}
+# The paper's training budget where it states one ("approximately 1.5 million environment steps";
+# the results of Tables II and III); the choice task's budget is not stated.
+PAPER_BUDGET = {'directed': 1_500_000, 'exploratory': 1_500_000}
+# Env steps per seed of the 'paper' profile (choice: the task default).
 PAPER_STEPS = {'choice': 200_000, 'directed': 1_500_000, 'exploratory': 1_500_000}
 
 
+def profile_config(profile: str, cell: Cell):
+    """The TrainConfig that profile's train.py command builds for a cell (train.py's own parser)."""
+    from hron_jax.cli import build_parser, config_from_args
+
+    args = build_parser().parse_args(train_argv(cell, 0, Path('run'), profile)[2:])
+    return config_from_args(vars(args))
+
+
 def profile_steps(profile: str, task: str) -> int:
-    opts = PROFILES[profile][task] or []
-    return int(opts[opts.index('--total-steps') + 1]) if '--total-steps' in opts else PAPER_STEPS[task]
+    return profile_config(profile, _main_cell(task)).ppo.total_timesteps
 
 
-# Facts about the setup that reading a table needs (they do not depend on particular runs).
-NOTES = {
-    1: [
-        'Notes. (1) Without distractors the choice scene has exactly 4 nodes, all of goal categories '
-        '(2 circles, 2 rectangles), so task-driven pooling and mean pooling select the same nodes: SG '
-        'and SG + TD ATTN compute the same function and, from the same seed, train identically (their '
-        'rows and curves coincide). (2) Profile `cpu`: the paper does not state the choice budget; '
-        'our runs use 20,480 env steps per seed and HGT hidden width 32 (paper model: 128) so that '
-        'the 12 runs fit ~30 min on 2 shared cores; at the paper width a 10-update trial of the '
-        'distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed that '
-        'has not left chance SR (0.5) by the end '
-        'of this budget counts as it is; the learning curves show when the others jumped.'
-    ],
-    2: [
-        'Notes. (1) Budget: the env steps column; rows of profile `cpu` ran '
-        f'{profile_steps("cpu", "directed"):,} env steps per seed '
-        f'({profile_steps("cpu", "directed") // 4096} PPO updates of 64 envs x 64 steps, '
-        f'{100 * profile_steps("cpu", "directed") / PAPER_STEPS["directed"]:.0f} % of the paper\'s '
-        '1.5 M): with episodes of up to 500 steps each env finishes only a few episodes during '
-        'training, so these rows show early learning under the paper\'s model and PPO settings, not '
-        'converged policies; the paper budget is the `paper` profile (commands and measured cost '
-        'below, when not run). '
-        '(2) The PPO update of the graph models dominates the time on the CPU (README, `python -m '
-        'hron_jax.bench train`); graph-free RGB-D only trains ~3x faster.'
-    ],
-    3: [
-        'Notes. (1) Budget: profile `cpu` rows ran '
-        f'{profile_steps("cpu", "exploratory"):,} env steps per seed '
-        f'({100 * profile_steps("cpu", "exploratory") / PAPER_STEPS["exploratory"]:.0f} % of the '
-        'paper\'s 1.5 M). (2) Estimates for cells without runs use, in order, the '
-        'cell\'s own runs, its --probe, or (flagged as a proxy) the main model of the same task: '
-        'graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'
-    ],
-}
+# ------------------------------------------------------------------------------------------------
+# What a run ran: its config in words, and how it compares with the paper's settings
+# ------------------------------------------------------------------------------------------------
+
+# Fields that say which cell a run belongs to, not how it was trained (left out when comparing
+# a run's config with the paper preset).
+_CELL_FIELDS = ('env.distractors', 'env.premap', 'env.task', 'env.metric_map', 'env.image_obs')
+
+
+def _sci(x: float) -> str:
+    """1e-4, 2.5e-4 (a learning rate as the paper and the issue write it)."""
+    m, e = f'{x:.2e}'.split('e')
+    return f'{m.rstrip("0").rstrip(".")}e{int(e)}'
+
+
+def _pct(steps: int, of: int) -> str:
+    pct = 100 * steps / of
+    return f'{pct:.0f}' if pct >= 1 else f'{pct:.1g}'
+
+
+def paper_diff(cfg) -> list[str]:
+    """Dotted fields (env, network, ppo; the budget aside) where a run's config differs from the
+    paper preset of its task and model; [] = the run ran the paper's settings."""
+    from hron_jax.run_config import config_diff, make_config
+
+    ref = make_config(cfg.task, cfg.model, {'preset': 'paper'})
+    return [
+        k
+        for k in config_diff(ref, cfg)
+        if k.split('.')[0] in ('env', 'network', 'ppo')
+        and k not in _CELL_FIELDS
+        and k != 'ppo.total_timesteps'
+    ]
+
+
+def settings(cfg) -> dict[str, str]:
+    """A run's settings in words, one entry per aspect (the model variant aside)."""
+    n, p = cfg.network, cfg.ppo
+    diff = paper_diff(cfg)
+    if not diff:
+        preset = f"preset {cfg.preset} (= the paper's settings)"
+    elif cfg.preset == 'paper':
+        preset = f"preset paper, changed: {', '.join(diff)} (not the paper's settings)"
+    else:
+        preset = f"preset {cfg.preset} (not the paper's settings)"
+    out = {'preset': preset}
+    if cfg.task != 'choice':
+        out['camera'] = f'camera {cfg.env.camera.width}x{cfg.env.camera.height}'
+    if n.use_graph:
+        out['graph'] = (
+            f'HGT hidden {n.hidden}, {n.heads} heads, {n.gnn_layers} layers, {n.hgt_softmax} softmax'
+            if n.gnn == 'hgt'
+            else f'GCN hidden {n.hidden}, {n.gnn_layers} layers'
+        )
+    out['ppo'] = (
+        f'PPO {p.num_envs} envs x {p.num_steps} steps, {p.update_epochs} epochs, minibatch '
+        f'{p.minibatch_size}, lr {_sci(p.lr)}' + (f', KL penalty {p.kl_coeff:g}' if p.kl_coeff else '')
+    )
+    budget = f'{p.total_timesteps:,} env steps / seed'
+    if cfg.task in PAPER_BUDGET:
+        budget += f" ({_pct(p.total_timesteps, PAPER_BUDGET[cfg.task])} % of the paper's 1.5 M)"
+    else:
+        budget += ' (the paper states no budget for this task)'
+    out['budget'] = budget
+    return out
+
+
+def describe_config(cfg) -> str:
+    """What a run ran, in one line: preset, camera, HGT, PPO, budget."""
+    return '; '.join(settings(cfg).values())
+
+
+def _main_cell(task: str) -> Cell:
+    """The main model's cell of a task (no distractors, no pre-map)."""
+    return next(c for c in GRID if c.task == task and c.model == 'rgbd_sg_attn')
+
+
+def _what(cfg) -> str:
+    """describe_config without the preset (for text that has already said which preset)."""
+    return '; '.join(v for k, v in settings(cfg).items() if k != 'preset')
+
+
+def notes(table: int) -> list[str]:
+    """Facts about the setup that reading a table needs (they do not depend on particular runs)."""
+    cpu = {t: profile_config('cpu', _main_cell(t)) for t in PAPER_STEPS}
+    if table == 1:
+        c = cpu['choice']
+        return [
+            'Notes. (1) Without distractors the choice scene has exactly 4 nodes, all of goal '
+            'categories (2 circles, 2 rectangles), so task-driven pooling and mean pooling select the '
+            'same nodes: SG and SG + TD ATTN compute the same function and, from the same seed, train '
+            "identically (their rows and curves coincide). (2) Profile `cpu`, not the paper's "
+            f'settings: {_what(c)}; the HGT width 32 instead of the release\'s 128 lets '
+            'the 12 runs fit ~30 min on 2 shared cores; at width 128 a 10-update trial of '
+            'the distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed '
+            'that has not left chance SR (0.5) by the end of this budget counts as it is; the '
+            'learning curves show when the others jumped.'
+        ]
+    if table == 2:
+        c = cpu['directed']
+        return [
+            "Notes. (1) Budget and settings: the Config column; rows of profile `cpu` (not the paper's "
+            f'settings) ran {_what(c)}, i.e. {c.ppo.num_updates} PPO '
+            f'updates: with episodes of up to 500 steps each env finishes only a few episodes '
+            'during training, so these rows show early learning, not converged policies, and not '
+            "under the paper's settings; those and the paper's budget are the `paper` profile "
+            '(`train.py --preset paper`; commands and measured cost below, when not run). '
+            '(2) The PPO update of the graph models dominates the time on the CPU (README, `python '
+            '-m hron_jax.bench train`); graph-free RGB-D only trains ~3x faster.'
+        ]
+    if table == 3:
+        c = cpu['exploratory']
+        return [
+            "Notes. (1) Budget and settings: profile `cpu` rows (not the paper's settings) ran "
+            f'{_what(c)}. (2) Estimates for cells without runs use, in order, the '
+            "cell's own runs, its --probe, or (flagged as a proxy) the main model of the same task: "
+            'graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'
+        ]
+    return []
+
+
+# ------------------------------------------------------------------------------------------------
+# Comparing the order of the models with the paper's
+# ------------------------------------------------------------------------------------------------
+
+
+def _order(a: float, b: float) -> str:
+    return '>' if a > b else ('<' if a < b else '=')
+
+
+def ordering_disagreements(ours: dict[str, float], paper: dict[str, float], digits: int = 3) -> list:
+    """Every pair of rows (labels in both dicts, in `ours`' order) whose order (>, <, =) differs
+    between our means and the paper's, as printed (rounded to `digits`): [(a, b, ours_a, ours_b,
+    paper_a, paper_b)]. [] = every pair is ordered as in the paper."""
+    labels = [k for k in ours if k in paper]
+    out = []
+    for i, a in enumerate(labels):
+        for b in labels[i + 1 :]:
+            oa, ob = round(ours[a], digits), round(ours[b], digits)
+            pa, pb = round(paper[a], digits), round(paper[b], digits)
+            if _order(oa, ob) != _order(pa, pb):
+                out.append((a, b, oa, ob, pa, pb))
+    return out
+
+
+def ordering_sentence(what: str, ours: dict[str, float], paper: dict[str, float]) -> str | None:
+    """One sentence on how `what` (e.g. 'SR, with distractors') orders the rows against the paper;
+    None when fewer than 2 rows ran."""
+    n = len([k for k in ours if k in paper])
+    pairs = n * (n - 1) // 2
+    if not pairs:
+        return None
+    bad = ordering_disagreements(ours, paper)
+    if not bad:
+        if pairs == 1:
+            return f'{what}: the one pair of rows is ordered as in the paper.'
+        return f'{what}: all {pairs} pairs of rows are ordered as in the paper.'
+    if pairs == 1:
+        head = 'the one pair of rows is'
+    else:
+        head = f'{len(bad)} of {pairs} pairs of rows {"is" if len(bad) == 1 else "are"}'
+    return (
+        f'{what}: {head} NOT ordered as in the paper: '
+        + '; '.join(
+            f'{a} {oa:.3f} {_order(oa, ob)} {b} {ob:.3f} here, '
+            f'{pa:.3f} {_order(pa, pb)} {pb:.3f} in the paper'
+            for a, b, oa, ob, pa, pb in bad
+        )
+        + '.'
+    )
 
 
 def train_argv(cell: Cell, seed: int, out: Path, profile: str, extra=()) -> list[str]:
@@ -312,6 +478,8 @@ def steps_per_second(run_dirs: list[Path]) -> float | None:
 
 def collect_cell(runs: Path, cell: Cell) -> dict | None:
     """Aggregate a cell's evaluated runs: per-seed SR / SPL means, steps, wall times, configs."""
+    from hron_jax.run_config import TrainConfig
+
     seeds, steps, train_wall, proc_wall, configs, episodes, machines, loads = (
         [],
         [],
@@ -328,10 +496,12 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
             continue
         e = json.loads(ev.read_text())
         s = e['summary']
-        cfg = json.loads((d / 'config.json').read_text())
+        cfg = TrainConfig.from_dict(json.loads((d / 'config.json').read_text())['config'])
         rows = _rows(d)
+        run_seeds = []
         for i, (sr, spl) in enumerate(zip(s['success']['per_seed'], s['spl']['per_seed'])):
-            seeds.append((cfg['config']['seed'] + i, sr, spl))
+            seeds.append((cfg.seed + i, sr, spl))
+            run_seeds.append(cfg.seed + i)
         episodes.add(s['episodes'])
         if rows:
             steps.append(rows[-1]['env_steps'])
@@ -343,42 +513,52 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
             if r.get('machine'):
                 machines.append(r['machine'])
             loads += r.get('loadavg_training') or (r.get('machine') or {}).get('loadavg', [])[:1]
-        configs.append(cfg)
+        configs.append((run_seeds, cfg))
     if not seeds:
         return None
     sr = np.array([x[1] for x in seeds])
     spl = np.array([x[2] for x in seeds])
-    c0 = configs[0]['config']
+    # The runs' configs in words, with the seeds of each (runs of one cell may differ).
+    described: dict[str, list[int]] = {}
+    for run_seeds, cfg in configs:
+        described.setdefault(describe_config(cfg), []).extend(run_seeds)
     return {
         'seeds': [x[0] for x in seeds],
-        'sr': (float(sr.mean()), float(sr.std())),
-        'spl': (float(spl.mean()), float(spl.std())),
+        'sr': mean_std(sr),
+        'spl': mean_std(spl),
         'sr_per_seed': sr.tolist(),
+        'spl_per_seed': spl.tolist(),
         'episodes': sorted(episodes),
         'env_steps': sorted(set(steps)),
         'train_wall_s': float(np.mean(train_wall)) if train_wall else None,
         'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
         'steps_per_s': steps_per_second(cell_runs(runs, cell)),
-        'model_options': model_options(c0),
-        'num_envs': c0['ppo']['num_envs'],
-        'meta': configs[0].get('meta', {}),
+        'configs': described,
+        'settings': [settings(cfg) for _, cfg in configs],
         'machine': machines[0] if machines else None,
         'loads': loads,
     }
 
 
-def model_options(config: dict) -> list[tuple]:
-    """(field, value) of a run's network that differ from its variant's defaults."""
-    from hron_jax.run_config import TrainConfig, config_diff, make_config
+def mean_std(x) -> tuple[float, float | None, int]:
+    """(mean, sample std with ddof=1 or None for one value, n) of per-seed values."""
+    x = np.asarray(x, np.float64)
+    return float(x.mean()), (float(x.std(ddof=1)) if len(x) > 1 else None), len(x)
 
-    cfg = TrainConfig.from_dict(config)
-    diff = config_diff(make_config(cfg.task, cfg.model), cfg)
-    return [(k.split('.', 1)[1], b) for k, (_, b) in diff.items() if k.startswith('network.')]
+
+def config_text(f: dict) -> str:
+    """A row's Config cell: its runs' config in words; seeds that ran different configs say so."""
+    if len(f['configs']) == 1:
+        return next(iter(f['configs']))
+    return 'seeds ran different configs: ' + ' / '.join(
+        f"seed{'s' if len(sd) > 1 else ''} {', '.join(map(str, sorted(sd)))}: {text}"
+        for text, sd in f['configs'].items()
+    )
 
 
 def curve_rows(run_dirs: list[Path], key: str = 'success') -> list[dict]:
-    """Learning curve over seeds: per env-step row, mean / std over the runs' per-chunk means
-    (rows of hron_jax.metrics_log's plot_learning_curves)."""
+    """Learning curve over seeds: per env-step row, mean / sample std (ddof=1; None for one seed)
+    over the runs' per-chunk means (rows of hron_jax.metrics_log's plot_learning_curves)."""
     per_run = [{r['env_steps']: r for r in _rows(d)} for d in run_dirs]
     steps = sorted(set().union(*[set(p) for p in per_run])) if per_run else []
     out = []
@@ -387,7 +567,7 @@ def curve_rows(run_dirs: list[Path], key: str = 'success') -> list[dict]:
         for k in (key, 'return'):
             vals = [v for p in per_run if s in p for v in ([p[s][k]] if p[s].get(k) is not None else [])]
             row[k] = float(np.mean(vals)) if vals else None
-            row[k + '_std'] = float(np.std(vals)) if vals else None
+            row[k + '_std'] = float(np.std(vals, ddof=1)) if len(vals) > 1 else None
         out.append(row)
     return out
 
@@ -410,6 +590,15 @@ def _pm(x, digits=3):
     if 0 < abs(x[0]) < 0.1:  # the paper's Yang et al. SPL 0.0302 ± 0.0013 keeps its digits
         digits += 1
     return f'{x[0]:.{digits}f} ± {x[1]:.{digits}f}'
+
+
+def _ours(x, digits=3) -> str:
+    """Our mean ± sample std (ddof=1) over seeds with n beside it, e.g. '0.900 ± 0.071 (n=2)';
+    one seed: the mean and n=1, no spread (± 0 would claim one)."""
+    mean, std, n = x
+    if std is None:
+        return f'{mean:.{digits}f} (n={n}, no spread)'
+    return f'{mean:.{digits}f} ± {std:.{digits}f} (n={n})'
 
 
 def _fmt_time(s):
@@ -450,12 +639,33 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
             )
             if load:
                 src += f', load average {load[0]:.1f}'
+            src += _settings_mismatch(dirs[0], profile_config(profile, cell))
             break
     if rate is None:
         return 'not measured', None
     steps = profile_steps(profile, cell.task)
     sec = seeds * steps / rate
     return f'{rate:.0f} env steps/s ({src}) -> {_fmt_time(sec)}', sec
+
+
+def _settings_mismatch(run_dir: Path, target) -> str:
+    """'' when a measured run trained with the preset / camera / PPO of the config to be estimated,
+    else a flag naming what differs (the cost per env step depends on them)."""
+    from hron_jax.run_config import TrainConfig
+
+    cfg = TrainConfig.from_dict(json.loads((run_dir / 'config.json').read_text())['config'])
+    got, want = settings(cfg), settings(target)
+    diff = [k for k in ('preset', 'camera', 'ppo') if k in got and got[k] != want.get(k, got[k])]
+    if not diff:
+        return ''
+    names = {'preset': 'preset', 'camera': 'camera', 'ppo': 'PPO'}
+    return (
+        f'; measured with preset {cfg.preset}: its {" / ".join(names[k] for k in diff)} settings '
+        f"differ from the estimate's, {ROUGH}"
+    )
+
+
+ROUGH = 'a rough figure'
 
 
 def plot_curves(runs: Path, cells: list[Cell], path: Path, title: str) -> bool:
@@ -626,6 +836,53 @@ def attention_section(runs: Path, figdir: Path, out_dir: Path) -> list[str]:
     return lines
 
 
+def table_comparison(table: int, done: list) -> list[str]:
+    """Lines under a table: whether its rows ran different settings, and per setting (distractors
+    / pre-map) and metric whether every pair of rows is ordered as in the paper."""
+    lines = []
+    varying = {}
+    for key in ('preset', 'camera', 'graph', 'ppo', 'budget'):
+        vals: dict[str, list[str]] = {}
+        for c, f in done:
+            for st in f['settings']:
+                if key in st and c.label not in vals.setdefault(st[key], []):
+                    vals[st[key]].append(c.label + (' + distractors' if c.distractors else ''))
+        if len(vals) > 1:
+            varying[key] = vals
+    if varying:
+        lines += [
+            'The rows of this table did not all run the same settings: '
+            + '; '.join(
+                ' vs '.join(f"{v} ({', '.join(rows)})" for v, rows in vals.items())
+                for vals in varying.values()
+            )
+            + '.',
+            '',
+        ]
+    elif len(done) > 1:
+        lines += ['All rows of this table ran the same settings apart from the model (Config column).', '']
+    sentences = []
+    for cond in (False, True):
+        rows = [(c, f) for c, f in done if (c.premap if table == 3 else c.distractors) == cond]
+        where = (
+            ('with pre-mapping' if cond else 'without pre-mapping')
+            if table == 3
+            else ('with distractors' if cond else 'without distractors')
+        )
+        for metric, key, pkey in (('SR', 'sr', 'paper_sr'), ('SPL', 'spl', 'paper_spl'))[: 1 + (table > 1)]:
+            ours = {c.label: f[key][0] for c, f in rows}
+            paper = {c.label: getattr(c, pkey)[0] for c, _ in rows}
+            sentence = ordering_sentence(f'Order of the models, {metric} {where}', ours, paper)
+            if sentence:
+                sentences.append(sentence)
+    if sentences:
+        lines += [
+            ' '.join(sentences) + ' (Means as printed; the spreads over seeds are not taken into account.)',
+            '',
+        ]
+    return lines
+
+
 def write_report(runs: Path, out: Path, seeds: int) -> str:
     figdir = out.parent / 'reproduction'
     lines = [
@@ -637,6 +894,7 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
         '',
     ]
     found = {c: collect_cell(runs, c) for c in GRID}
+    paper_nav = profile_config('paper', _main_cell('directed'))
     m = next((f['machine'] for f in found.values() if f and f['machine']), None) or machine()
     loads = [x for f in found.values() if f for x in f['loads']]
     load_txt = f'{min(loads):.1f}-{max(loads):.1f}' if loads else str(m.get('loadavg', '?'))
@@ -651,12 +909,24 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
         '"Seeds x episodes" column says how many ran); the final '
         f'checkpoint of each seed is evaluated with `eval.py RUN --episodes N` (same episode '
         'starts / goals for every seed and model; actions sampled from the policy).',
-        '- SR / SPL: mean over all episodes of all seeds ± std over seeds of the per-seed means '
-        '(the paper: "averaged over 20 episodes across three random seeds").',
+        '- SR / SPL: mean over all episodes of all seeds ± sample std (ddof=1) over seeds of the '
+        'per-seed means, n = seeds beside it; one seed: no spread (the paper: "averaged over 20 '
+        'episodes across three random seeds"; its ± are copied as printed).',
         '- env steps: per seed; wall: mean per seed of training (excluding compilation, from '
         'metrics.jsonl) and of the whole train + eval processes (compilation included).',
-        '',
+        '- settings: every row\'s Config column says what its runs ran, read from each run\'s '
+        'config.json: preset, camera (navigation), HGT softmax and sizes (graph models), PPO '
+        '(envs x steps per update, epochs, minibatch size, lr), budget. The paper\'s settings are '
+        f"`train.py --preset paper` (navigation: {_what(paper_nav)}); only a run that ran exactly "
+        'those says "= the paper\'s settings".',
     ]
+    for table in (1, 2, 3):
+        done = [(c, found[c]) for c in GRID if c.table == table and found[c] is not None]
+        texts = sorted({t for _, f in done for t in f['configs']})
+        if texts:
+            lines.append(f'- {TABLE_TITLES[table].split(":")[0]} runs ran:')
+            lines += [f'  - {t}' for t in texts]
+    lines.append('')
     for table in (1, 2, 3):
         cells = [c for c in GRID if c.table == table]
         lines += [f'## {TABLE_TITLES[table]}', '']
@@ -678,53 +948,53 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                 row += ['not yet run'] + (['not yet run'] if spl else []) + ['-'] * 5
                 missing.append(c)
             else:
-                opts = ', '.join(f'{k}={v}' for k, v in f['model_options']) or 'paper model'
-                # One seed has no spread over seeds to report (± 0 would claim one).
-                ours = (lambda x: f'{x[0]:.3f} (1 seed)') if len(f['seeds']) == 1 else _pm
-                row += [ours(f['sr'])] + ([ours(f['spl'])] if spl else [])
+                row += [_ours(f['sr'])] + ([_ours(f['spl'])] if spl else [])
                 row += [
                     f"{len(f['seeds'])} x {'/'.join(map(str, f['episodes']))}",
                     '/'.join(f'{s:,}' for s in f['env_steps']),
                     _fmt_time(f['train_wall_s']),
                     _fmt_time(f['proc_wall_s']),
-                    f"{opts}; {f['num_envs']} envs",
+                    config_text(f),
                 ]
             lines.append('| ' + ' | '.join(row) + ' |')
         lines.append('')
         done = [(c, found[c]) for c in cells if found[c] is not None]
         if done:
-            lines += [
-                'Per-seed SR (seed: SR): '
-                + '; '.join(
-                    f"{c.label}{' + distractors' if c.distractors else ''}"
-                    f"{' (PM)' if c.premap and 'PM' not in c.label else ''}: "
-                    + ', '.join(f'{sd}: {v:.3f}' for sd, v in zip(f['seeds'], f['sr_per_seed']))
-                    for c, f in done
-                ),
-                '',
-            ]
-        if NOTES.get(table):
-            lines += NOTES[table] + ['']
+            for metric, key in (('SR', 'sr_per_seed'), ('SPL', 'spl_per_seed'))[: 1 + spl]:
+                lines += [
+                    f'Per-seed {metric} (seed: {metric}): '
+                    + '; '.join(
+                        f"{c.label}{' + distractors' if c.distractors else ''}"
+                        f"{' (PM)' if c.premap and 'PM' not in c.label else ''}: "
+                        + ', '.join(f'{sd}: {v:.3f}' for sd, v in zip(f['seeds'], f[key]))
+                        for c, f in done
+                    ),
+                    '',
+                ]
+            lines += table_comparison(table, done)
+        lines += notes(table) + ['']
         fig = figdir / f'table{table}_curves.png'
-        if plot_curves(runs, cells, fig, TABLE_TITLES[table] + ': training SR, mean ± std over seeds'):
+        if plot_curves(runs, cells, fig, TABLE_TITLES[table] + ': training SR, mean ± sample std over seeds'):
             lines += [
                 f'![learning curves]({fig.relative_to(out.parent).as_posix()})',
                 '',
                 'Training success rate (episodes completed in each logged chunk of updates, '
-                'sampled actions) against env steps per seed; band: std over seeds.',
+                'sampled actions) against env steps per seed; band: sample std (ddof=1) over seeds.',
                 '',
             ]
         if missing:
             lines += [
-                'Not yet run (commands per seed, then the report; estimated training cost for '
-                f'{seeds} seeds at the paper\'s budget of {PAPER_STEPS[cells[0].task]:,} env '
+                'Not yet run (commands per seed with the `paper` profile, i.e. `train.py --preset '
+                'paper`, then the report; estimated training cost for '
+                f'{seeds} seeds at {PAPER_STEPS[cells[0].task]:,} env '
                 'steps per seed, from measured steps/s, compilation and evaluation excluded):',
                 '',
             ]
-            total = 0.0
+            total, rough = 0.0, False
             for c in missing:
                 est, sec = estimate(c, runs, seeds, 'paper')
                 total += sec or 0.0
+                rough |= ROUGH in est
                 rel = f'runs/repro/{c.name}/s$SEED'
                 cmd = ' '.join(train_argv(c, 0, Path(rel), 'paper')).replace('--seed 0', '--seed $SEED')
                 lines += [
@@ -738,6 +1008,13 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                     f'Total estimated training for these cells on this machine: '
                     f'{_fmt_time(total)} ({total / 86400:.0f} days).',
                 ]
+            if rough:
+                lines += [
+                    '',
+                    f'Estimates marked "{ROUGH}" come from runs under other settings than the paper '
+                    "profile's `--preset paper` (e.g. 4 PPO epochs per update and a 32x32 camera "
+                    'instead of 30 epochs and 128x128): they are presumably lower bounds.',
+                ]
             lines.append('')
     lines += generalisation_section(runs)
     lines += attention_section(runs, figdir, out.parent)
@@ -746,8 +1023,8 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
         '',
         '```bash',
         'python tools/reproduce.py --plan                 # grid, commands, cost estimates',
-        'python tools/reproduce.py --tables 1 --profile cpu   # Table I as run here (~30 min on 2 cores)',
-        'python tools/reproduce.py --tables 2 3 --profile paper   # navigation (GPU advised)',
+        "python tools/reproduce.py --tables 1 --profile cpu  # Table I as run here: not the paper's settings",
+        'python tools/reproduce.py --tables 2 3 --profile paper   # train.py --preset paper (GPU advised)',
         'python tools/reproduce.py --attention            # attention figures of the trained main models',
         'python tools/reproduce.py --from-runs            # this report from existing runs',
         '```',
@@ -764,9 +1041,29 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
 # ------------------------------------------------------------------------------------------------
 
 
+def config_mismatch(run_dir: Path, wanted) -> list[str]:
+    """Dotted fields (preset, env, network, ppo; budget and seed aside) where a run dir's config
+    differs from `wanted`; [] = resuming it continues the same settings."""
+    from hron_jax.run_config import TrainConfig, config_diff
+
+    cfg = TrainConfig.from_dict(json.loads((run_dir / 'config.json').read_text())['config'])
+    return [
+        k
+        for k in config_diff(cfg, wanted)
+        if (k == 'preset' or k.split('.')[0] in ('env', 'network', 'ppo')) and k != 'ppo.total_timesteps'
+    ]
+
+
 def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int) -> None:
     out = runs / cell.name / f's{seed}'
     budget = profile_steps(profile, cell.task)
+    if (out / 'config.json').is_file():
+        differ = config_mismatch(out, profile_config(profile, cell))
+        if differ:
+            raise SystemExit(
+                f'{out} was trained with other settings than profile {profile!r} ({", ".join(differ)}); '
+                'resuming it would mix them: use another --runs directory or the profile it ran'
+            )
     trained = _rows(out)[-1]['env_steps'] if (out / 'config.json').is_file() and _rows(out) else 0
     if eval_json(out) is not None and trained >= budget:
         print(f'{cell.name} s{seed}: done already', flush=True)
@@ -818,15 +1115,13 @@ def run_held_out(cell: Cell, run_dir: Path, episodes: int) -> None:
 
 
 def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
-    """A short run of a cell at the paper config (a few updates) to measure env steps/s."""
-    from hron_jax.run_config import make_config
-
+    """A short run of a cell with the paper profile (`--preset paper`, a few updates) to measure
+    env steps/s."""
     out = runs / '_probe' / cell.name
     if (out / 'config.json').is_file():
         print(f'probe {cell.name}: exists ({out})')
         return
-    cfg = make_config(cell.task)
-    steps = cfg.ppo.batch_size * updates
+    steps = profile_config('paper', cell).ppo.batch_size * updates
     argv = train_argv(cell, 0, out, 'paper', extra=['--total-steps', str(steps), '--log-every', '1'])
     out.parent.mkdir(parents=True, exist_ok=True)
     mach = machine()
@@ -863,7 +1158,12 @@ def main(argv=None) -> int:
     p.add_argument('--probe', nargs='+', metavar='CELL', help='measure steps/s of these cells (short runs)')
     p.add_argument('--tables', type=int, nargs='+', default=[1, 2, 3], choices=[1, 2, 3])
     p.add_argument('--cells', help='regex on cell names (e.g. "choice_.*_dist")')
-    p.add_argument('--profile', choices=tuple(PROFILES), default='cpu')
+    p.add_argument(
+        '--profile',
+        choices=tuple(PROFILES),
+        default='cpu',
+        help='; '.join(f'{k}: {v}' for k, v in PROFILE_TEXT.items()),
+    )
     p.add_argument('--seeds', type=int, default=3)
     p.add_argument(
         '--episodes',
@@ -884,6 +1184,7 @@ def main(argv=None) -> int:
             probe(by_name[name], runs)
         return 0
     if a.plan:
+        print(f'profile {a.profile}: {PROFILE_TEXT[a.profile]}')
         total = 0.0
         for c in cells:
             n_done = len([d for d in cell_runs(runs, c) if eval_json(d) is not None])
@@ -891,6 +1192,7 @@ def main(argv=None) -> int:
             est, sec = estimate(c, runs, a.seeds, prof)
             total += sec or 0.0
             print(f'[Table {c.table}] {c.name:34s} {n_done}/{a.seeds} seeds evaluated; {est}')
+            print(f'    settings ({prof}): {describe_config(profile_config(prof, c))}')
             for s in range(a.seeds):
                 d = runs / c.name / f's{s}'
                 print(

@@ -22,6 +22,9 @@ class ModelConfig:
         heads: HGT attention heads (release: 2); `hidden` must be divisible by it.
         gnn_layers: number of message-passing layers (release: 3), each followed by ReLU.
         gnn: 'hgt' (heterogeneous graph transformer) or 'gcn' (Kipf & Welling, edges homogeneous).
+        hgt_softmax: how HGT normalises its attention (gnn.HGTConv): 'joint' (PyG >= 2.3, one softmax
+            over all incoming edges of a node) or 'per_relation' (PyG <= 2.2, as the paper used it:
+            one softmax per incoming relation triple, the relations' messages summed).
         pooling: 'task' (task-driven attention: indicator on goal categories) or 'mean' (live nodes).
         pool_flag: append a 0/1 feature "the pooling mask selected at least one node", so the policy
             can tell "nothing relevant seen yet" (pooled vector = 0) from a genuinely zero embedding.
@@ -47,6 +50,7 @@ class ModelConfig:
     heads: int = 2
     gnn_layers: int = 3
     gnn: Literal["hgt", "gcn"] = "hgt"
+    hgt_softmax: Literal["joint", "per_relation"] = "joint"
     pooling: Literal["task", "mean"] = "task"
     pool_flag: bool = True
     node_features: Literal["learned", "word_vectors"] = "learned"
@@ -71,6 +75,7 @@ class ModelConfig:
             raise ConfigError("heads", f"must divide hidden = {self.hidden}, got {self.heads}")
         for field, allowed in (
             ("gnn", ("hgt", "gcn")),
+            ("hgt_softmax", ("joint", "per_relation")),
             ("pooling", ("task", "mean")),
             ("node_features", ("learned", "word_vectors")),
             ("goal_encoding", ("one_hot", "word_vector")),

@@ -19,7 +19,9 @@ downstream. Everything has static shapes and is jittable and vmappable.
 
 Semantics follow PyTorch Geometric 2.8 (`torch_geometric.nn.HGTConv` and `GCNConv`), checked
 numerically in tests/test_models.py against outputs saved by tools/make_pyg_reference.py;
-`hron_jax.models.pyg_compat` converts PyG state dicts to these parameters.
+`hron_jax.models.pyg_compat` converts PyG state dicts to these parameters. HGTConv's
+softmax='per_relation' is the paper-era PyG <= 2.2 attention instead (see HGTConv), checked
+against an independent NumPy implementation of that formula in the same tests.
 """
 
 from __future__ import annotations
@@ -85,6 +87,23 @@ def masked_segment_softmax(logits, live, segment_ids, num_segments):
     e = jnp.where(live_b, jnp.exp(z), 0.0)
     denom = jax.ops.segment_sum(e, segment_ids, num_segments) + 1e-16
     return e / denom[segment_ids]
+
+
+SOFTMAX_MODES = ("joint", "per_relation")
+
+
+def _softmax_groups(receivers, relation, num_nodes: int, num_relations: int, softmax: str):
+    """Segment ids and count of the HGT attention softmax (static count).
+
+    'joint': one group per receiver (all its incoming edges, across relations). 'per_relation':
+    one group per (receiver, relation triple), id receiver * R + relation; `relation` must already
+    be clipped to [0, R) (dead edges keep any such id and are excluded by the softmax's mask).
+    """
+    if softmax == "joint":
+        return receivers, num_nodes
+    if softmax == "per_relation":
+        return receivers * num_relations + relation, num_nodes * num_relations
+    raise ValueError(f"HGT softmax must be one of {SOFTMAX_MODES}, got {softmax!r}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,7 +186,9 @@ def _slot_kernels(rel_kernel, slot_rel):
     return w.transpose(0, 2, 3, 1, 4).reshape(t, h, d, s * d)
 
 
-def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int):
+def _hgt(
+    params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int, softmax: str
+):
     """HGTConv on one graph (or a disjoint union of graphs): returns (out f32[N, F], alpha f32[E, H]).
 
     Layout: nodes are permuted into blocks of a single type (`_type_blocks`), so every per-type
@@ -217,7 +238,7 @@ def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mas
     v_e = table[(base + h * c) * s + slot]
     q_e = q[pd]
     score = jnp.sum(q_e * k_e, axis=-1) * params["p_rel"][rel] / math.sqrt(d)
-    alpha = masked_segment_softmax(score, live, pd, rows)
+    alpha = masked_segment_softmax(score, live, *_softmax_groups(pd, rel, rows, r, softmax))
     # where() rather than a product with alpha = 0: a non-finite value on a dead row must not leak.
     msg = jnp.where(live[:, None, None], v_e * alpha[..., None], 0.0)
     agg = jax.ops.segment_sum(msg, pd, rows).reshape(nb, c, f)
@@ -232,7 +253,9 @@ def _hgt(params, x, node_type, node_mask, senders, receivers, relation, edge_mas
     return jnp.where(node_mask[:, None], out, 0.0), alpha
 
 
-def _hgt_single(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int):
+def _hgt_single(
+    params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int, softmax: str
+):
     """HGTConv on ONE graph without any permutation: (out f32[N, F], alpha f32[E, H]).
 
     Every per-type linear runs all T types on every node and selects (an input-side one-hot: one
@@ -266,7 +289,7 @@ def _hgt_single(params, x, node_type, node_mask, senders, receivers, relation, e
     v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
     row = senders * r + rel
     score = jnp.sum(q[receivers] * k_all[row], axis=-1) * params["p_rel"][rel] / math.sqrt(d)
-    alpha = masked_segment_softmax(score, live, receivers, n)
+    alpha = masked_segment_softmax(score, live, *_softmax_groups(receivers, rel, n, r, softmax))
     msg = jnp.where(live[:, None, None], v_all[row] * alpha[..., None], 0.0)
     agg = jax.ops.segment_sum(msg, receivers, n).reshape(n, f)
     out = typed(jax.nn.gelu(agg, approximate=False), params["out_kernel"], params["out_bias"])
@@ -276,7 +299,9 @@ def _hgt_single(params, x, node_type, node_mask, senders, receivers, relation, e
     return jnp.where(node_mask[:, None], out, 0.0), alpha
 
 
-def _hgt_batch(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int):
+def _hgt_batch(
+    params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int, softmax: str
+):
     """`_hgt` on a batch of graphs [B, N, ...] / [B, E] run as ONE disjoint-union graph, so the type
     blocks span the batch (large matmuls, padding paid once per batch, not per graph)."""
     b, n = node_type.shape
@@ -292,6 +317,7 @@ def _hgt_batch(params, x, node_type, node_mask, senders, receivers, relation, ed
         relation.reshape(-1),
         edge_mask.reshape(-1),
         heads=heads,
+        softmax=softmax,
     )
     return out.reshape(b, n, -1), alpha.reshape(b, e, heads)
 
@@ -304,9 +330,14 @@ class HGTConv(nn.Module):
         k, q, v   = per-node-type linear of x (PyG `kqv_lin`, a HeteroDictLinear with bias)
         k_e, v_e  = k[src] @ k_rel[r, h],  v[src] @ v_rel[r, h]   (per relation and head, no bias)
         score_e,h = <q[dst]_h, k_e,h> * p_rel[r, h] / sqrt(D)
-        alpha     = softmax of score over ALL live incoming edges of dst, across relations
-                    (the current PyG / HGT-paper form; PyG < 2.3 normalised per relation)
-        agg[i]    = sum_e alpha_e v_e                      (0 for a node without live in-edges)
+        alpha     = softmax of score over the live incoming edges of dst:
+                    softmax='joint' (default): over ALL of them, across relations (PyG >= 2.3 and
+                        the HGT paper's form);
+                    softmax='per_relation': separately over those of each relation triple r
+                        (PyG <= 2.2, before PR #6178; the form the HRON paper trained with)
+        agg[i]    = sum_e alpha_e v_e                      (0 for a node without live in-edges;
+                    per_relation: the sum over relations of each relation's softmax-weighted
+                    messages, PyG 2.2's group='sum'; a relation with no live in-edge adds 0)
         a         = per-node-type linear of gelu(agg)      (exact erf gelu, as torch's default)
         out       = sigmoid(skip[tau]) a + (1 - sigmoid(skip[tau])) x   if F_in == features
                     else a                                  (PyG skips the residual then too)
@@ -318,7 +349,16 @@ class HGTConv(nn.Module):
         i32[B, E]), which runs as one disjoint-union graph (fast path, see Cost).
     Output: f32[(B,) N, features]. Sows the attention alpha f32[(B,) E, H] (0 on dead edges) as
     ('attention', 'alpha'), collected only when the caller makes 'attention' mutable (and never
-    during init, so `init` returns parameters only, valid for single and batched apply).
+    during init, so `init` returns parameters only, valid for single and batched apply). The shape
+    is the same for both softmax modes, but not the normalisation: under 'joint' the alphas of
+    the live in-edges of a receiver sum to 1 per head; under 'per_relation' they sum to 1 per
+    head AND incoming relation triple, so a receiver hands out one unit of attention per relation
+    type it receives (e.g. a room with inRoom edges from furniture and from objects and a
+    roomConnected edge sums to 3). Reductions that assume one unit per receiver must normalise
+    per relation (or by the receiver's sum) first.
+
+    softmax: 'joint' or 'per_relation' (ModelConfig.hgt_softmax). Parameters, shapes and cost are
+    the same for both (per_relation's softmax has N x R segments instead of N).
 
     Parameters: kqv_kernel [T, F_in, 3F], kqv_bias [T, 3F] (k | q | v blocks), k_rel / v_rel
     [R, H, D, D], p_rel [R, H] (init 1), out_kernel [T, F, F], out_bias [T, F], skip [T] (init 1).
@@ -344,11 +384,14 @@ class HGTConv(nn.Module):
     heads: int = 1
     num_node_types: int = gt.NUM_NODE_TYPES
     num_relations: int = gt.NUM_RELATIONS
+    softmax: str = "joint"
 
     @nn.compact
     def __call__(self, x, node_type, node_mask, senders, receivers, relation, edge_mask):
         if x.ndim not in (2, 3):
             raise ValueError(f"x must be [N, F] or [B, N, F], got shape {x.shape}")
+        if self.softmax not in SOFTMAX_MODES:
+            raise ValueError(f"HGTConv softmax must be one of {SOFTMAX_MODES}, got {self.softmax!r}")
         f_in = x.shape[-1]
         f, h = self.features, self.heads
         if f % h:
@@ -376,7 +419,18 @@ class HGTConv(nn.Module):
             skip=skip,
         )
         run = _hgt_batch if x.ndim == 3 else _hgt_single
-        out, alpha = run(params, x, node_type, node_mask, senders, receivers, relation, edge_mask, heads=h)
+        out, alpha = run(
+            params,
+            x,
+            node_type,
+            node_mask,
+            senders,
+            receivers,
+            relation,
+            edge_mask,
+            heads=h,
+            softmax=self.softmax,
+        )
         if not self.is_initializing():  # keep init's variables free of sown values (batch-agnostic)
             self.sow("attention", "alpha", alpha)
         return out
