@@ -78,6 +78,12 @@ def test_live_edges_and_uniform_attention():
     bad = toy_record()
     bad.edge_type[0, 0, 0] = GT.ROOM_CONNECTED  # furniture -> room is not roomConnected
     assert not A.live_edges(bad)[0, 0, 0]
+    # Per-relation softmax (the paper's HGT): receiver 1's in-edges 2 (object onTop) and 3
+    # (room rev_inRoom) are different relations, so each is alone in its group; receiver 0's two
+    # inRoom edges (both furniture -> room) still share one.
+    per = toy_record()
+    per.hgt_softmax = 'per_relation'
+    np.testing.assert_allclose(A.uniform_alpha(per)[0, 0], [0.5, 0.5, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0])
 
 
 def test_edge_type_mass_and_node_attention():
