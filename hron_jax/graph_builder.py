@@ -11,8 +11,10 @@ vmappable; the only state is one boolean per node:
 
 Node table (N_MAX rows): every instance of the scene in the loader's order (rooms, furniture,
 objects of the pool), then padding. A node is *discovered* once its instance covers at least
-`min_pixels` pixels whose depth is below `detect_range` in one frame (depth is the camera's
-z-depth along the optical axis, so the range is a slab in front of the camera, not a sphere).
+`GraphConfig.frame_min_pixels(W, H)` pixels (`min_pixels` at the reference 128 x 128, scaled by the
+frame's pixel count, at least 1; see GraphConfig) whose depth is below `detect_range` in one frame
+(depth is the camera's z-depth along the optical axis, so the range is a slab in front of the
+camera, not a sphere).
 A room is discovered like any instance when enough of its floor is seen, or when the agent
 stands in it (entered). Objects are nodes only while the episode uses them (`Placement.active`).
 
@@ -44,6 +46,7 @@ Pre-mapping (`premap=True`): rooms and furniture start discovered; objects never
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import jax
@@ -58,12 +61,50 @@ from .scenes.loader import Scene, room_at
 
 @dataclasses.dataclass(frozen=True)
 class GraphConfig:
-    """Static graph-builder settings (hashable)."""
+    """Static graph-builder settings (hashable).
+
+    Discovery threshold: one frame of W x H pixels must show frame_min_pixels(W, H) = max(1,
+    ceil(min_pixels * W * H / pixel_reference**2)) in-range pixels of an instance, i.e. the instance
+    covers min_pixels / pixel_reference**2 of the frame, the same part of the field of view (same
+    solid angle for one camera FoV) at every resolution. Default: 2 pixels of the paper's 128 x 128
+    frame, so 2 at 128 x 128 (unchanged), 1 at 32 x 32 and 64 x 64 (was 2), 8 at 256 x 256.
+    pixel_reference=None restores the earlier rule (min_pixels frame pixels at any size); in a run
+    config (integers only) set env.graph.pixel_reference to the camera's side for the same effect.
+
+    Why (`python -m hron_jax.bench discovery`: each house object on a table, approached head-on,
+    median over 16 sub-pixel view offsets of the xy distance of first discovery): with 2 frame
+    pixels a 32 x 32 agent first sees the apple / mug / book at 0.68 / 0.78 / 0.95 m, inside the 1 m
+    success radius, and every category at 0.25-0.31 x its 128 x 128 distance (2.65-4.47 m): one
+    32 x 32 pixel has the area of 16 at 128 x 128, so 2 of them ask 16x the reference's solid angle.
+    With 1 pixel the 32 x 32 medians are 1.27-2.21 m (0.33-0.56 x), the 64 x 64 ones 2.53-4.05 m
+    (0.66-0.99 x). A threshold cannot close the rest at 32 x 32: rays are point samples, and the
+    reference's 2 pixels are 1/8 of a 32 x 32 pixel, below one sample, so an object that small shows
+    up only where it happens to cover a pixel centre (which also lets one lucky ray discover a far
+    object, up to the detect range). Matching 128 x 128 needs an instance image at that resolution;
+    `update` takes any frame size and the threshold follows it.
+    """
 
     max_nodes: int | None = None  # N_MAX; None = the scene's node count
     max_edges: int | None = None  # E_MAX; None = the scene's edge capacity
-    min_pixels: int = 2  # pixels of one instance in one frame to discover it
+    min_pixels: int = 2  # pixels of one instance in one frame to discover it, counted at pixel_reference
     detect_range: float = 6.0  # m; farther pixels do not count (a detector's range)
+    # Side of the square frame (pixel_reference**2 pixels) at which min_pixels is counted; a frame of
+    # W x H pixels needs frame_min_pixels(W, H) of them. None: min_pixels counts the frame's own pixels.
+    pixel_reference: int | None = 128
+
+    def __post_init__(self):
+        if self.min_pixels < 1:
+            raise ValueError(f"min_pixels must be >= 1, got {self.min_pixels}")
+        if self.pixel_reference is not None and self.pixel_reference < 1:
+            raise ValueError(f"pixel_reference must be >= 1 or None, got {self.pixel_reference}")
+
+    def frame_min_pixels(self, width: int, height: int) -> int:
+        """Pixels of one instance a width x height frame needs: max(1, ceil(min_pixels * W * H /
+        pixel_reference**2)), i.e. the instance covers at least min_pixels / pixel_reference**2 of
+        the frame; min_pixels itself when pixel_reference is None."""
+        if self.pixel_reference is None:
+            return self.min_pixels
+        return max(1, math.ceil(self.min_pixels * width * height / self.pixel_reference**2))
 
 
 class Placement(NamedTuple):
@@ -177,7 +218,7 @@ class GraphBuilder:
         valid = (instance >= 0) & (depth < self.config.detect_range)
         idx = jnp.where(valid, instance, 0).reshape(-1)
         counts = jnp.zeros((self.max_nodes,), jnp.int32).at[idx].add(valid.reshape(-1).astype(jnp.int32))
-        seen = counts >= self.config.min_pixels
+        seen = counts >= self.config.frame_min_pixels(instance.shape[-1], instance.shape[-2])
         return (discovered | seen | self._agent_room(pose)) & self.real & self._node_active(placement)
 
     def _agent_room(self, pose):

@@ -412,6 +412,8 @@ def _upgrade(d: dict) -> dict:
     out['env.distractors'] = d.get('distractors', False)
     if d.get('premap'):
         out['env.premap'] = True
+    if d.get('task') != 'choice':  # those runs discovered instances from 2 pixels of their own frame
+        out.setdefault('env.graph.pixel_reference', dict(d.get('env_options', ())).get('image_size', 32))
     ppo = dict(d.get('ppo', {}))
     ppo.pop('seed', None)
     if 'normalize_advantages' in ppo:

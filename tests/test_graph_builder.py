@@ -10,6 +10,7 @@ pose sees a known set of instances. One jitted renderer per module keeps the sui
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import xml.etree.ElementTree as ET
 
@@ -31,7 +32,9 @@ SYMMETRIC = os.path.join(ROOT, "scenes", "symmetric_room.xml")
 BOX_ROOM = os.path.join(ROOT, "tests", "scenes", "box_room.xml")
 
 CAM = CameraConfig(width=32, height=32, vfov_deg=60.0)
-GCFG = GraphConfig(min_pixels=2, detect_range=3.0)
+# min_pixels counted in the frame's own pixels (pixel_reference=None), so the synthetic frames of any
+# size and the 32x32 renders below need exactly 2 pixels; the default rule is tested at the end.
+GCFG = GraphConfig(min_pixels=2, detect_range=3.0, pixel_reference=None)
 
 # Episode used throughout (symmetric room): a target on table:1, one object inside shelf:1, one
 # under table:0 and a distractor lying on the floor with no furniture (its inRoom edge comes from
@@ -340,7 +343,7 @@ def test_padding_never_leaks(sym):
     scene, gb, placement = sym["scene"], sym["gb"], sym["placement"]
     big = GraphBuilder(
         scene,
-        GraphConfig(min_pixels=2, detect_range=3.0, max_nodes=gb.max_nodes + 9, max_edges=gb.max_edges + 17),
+        dataclasses.replace(GCFG, max_nodes=gb.max_nodes + 9, max_edges=gb.max_edges + 17),
     )
     poses = [jnp.asarray([0.0, 0.3, k * np.pi / 2], jnp.float32) for k in range(4)]
     frames = [sym["frame"](p) for p in poses]
@@ -486,3 +489,91 @@ def test_capacity_errors():
         GraphBuilder(scene, GraphConfig(max_nodes=scene.num_nodes - 1))
     with pytest.raises(ValueError, match="max_edges"):
         GraphBuilder(scene, GraphConfig(max_edges=3))
+
+
+# ------------------------------------------------------------------------ fair discovery rule
+def test_frame_min_pixels_scales_with_the_frame():
+    """Default rule: min_pixels counted at 128 x 128, i.e. the instance covers >= 2 / 128^2 of the frame
+    (at least one pixel); pixel_reference=None counts the frame's own pixels."""
+    g = GraphConfig()
+    assert (g.min_pixels, g.pixel_reference) == (2, 128)
+    want = {(32, 32): 1, (64, 64): 1, (96, 96): 2, (128, 128): 2, (160, 120): 3, (256, 256): 8, (8, 8): 1}
+    assert {wh: g.frame_min_pixels(*wh) for wh in want} == want
+    assert GraphConfig(min_pixels=1).frame_min_pixels(128, 128) == 1
+    assert GraphConfig(min_pixels=3, pixel_reference=64).frame_min_pixels(128, 128) == 12
+    assert {GCFG.frame_min_pixels(s, s) for s in (8, 32, 128, 256)} == {2}
+    for bad in (dict(pixel_reference=0), dict(min_pixels=0)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            GraphConfig(**bad)
+
+    # update reads the frame size from the instance image: one in-range pixel of the table.
+    scene = load_scene(BOX_ROOM)
+    placement = Placement.empty(scene.num_objects)
+    pose = jnp.asarray([-3.5, 0.0, 0.0])
+    table = scene.index_of("furniture:table:0")
+    for size, cfg, found in ((32, g, True), (64, g, True), (128, g, False), (32, GCFG, False)):
+        gb = GraphBuilder(scene, cfg)
+        inst = np.full((size, size), -1, np.int32)
+        inst[3, 5] = table
+        disc = gb.update(
+            gb.reset(placement, pose), placement, pose, jnp.asarray(inst), jnp.ones((size, size))
+        )
+        assert bool(disc[table]) == found, (size, cfg)
+
+
+def _apple_approach(size, rules, dists, yaws):
+    """box_room, apple on the table top (centre (-2, 0, 0.795)); the agent at (-2 + d, 0) walks at it
+    along -x (through the door for d > 2), heading pi + yaw. -> discovered bool[rule, yaw, d] of
+    GraphBuilder.update from one fresh state per frame (120 deg camera, 1 m high, size x size)."""
+    scene = load_scene(BOX_ROOM)
+    placement = make_placement(scene, {"object:apple:0": ("furniture:table:0", "onTop")})
+    apple = scene.index_of("object:apple:0")
+    np.testing.assert_allclose(np.asarray(placement.pos)[0], (-2.0, 0.0, 0.795), atol=1e-6)
+    cam = Camera(scene.model, CameraConfig(width=size, height=size), scene.geom_instance, scene.geom_class)
+    xpos, xmat = geom_poses(scene, placement)
+    builders = [GraphBuilder(scene, r) for r in rules]
+    yy, dd = np.meshgrid(yaws, dists, indexing="ij")
+    poses = jnp.asarray(np.stack([-2.0 + dd, 0 * dd, np.pi + yy], -1).reshape(-1, 3), jnp.float32)
+
+    @jax.jit
+    def flags(poses):
+        def one(pose):
+            f = cam.render_geoms(xpos, xmat, pose)
+            return jnp.stack(
+                [
+                    b.update(b.reset(placement, pose), placement, pose, f.instance, f.depth)[apple]
+                    for b in builders
+                ]
+            )
+
+        return jax.lax.map(one, poses, batch_size=128)
+
+    return np.asarray(flags(poses)).reshape(len(yaws), len(dists), len(rules)).transpose(2, 0, 1)
+
+
+def test_fair_rule_discovers_small_objects_outside_the_success_radius_at_32():
+    """Apple (r = 4.5 cm) approached head-on, camera 120 deg vfov, at 8 sub-pixel yaw phases spanning
+    half a 32x32 pixel (by the mirror symmetry of the view, that is every phase). Pixel centres are
+    uniform in tan-space, pitch p_s = 2 tan(60 deg) / s (p32 = 0.108, p128 = 0.0271), and the apple's
+    image contains the disk of radius r / d (d = z-depth = xy distance) and lies in the disk of radius
+    r / (d cos(off-axis angle)). Bounds, for every phase:
+    - a disk of diameter < 1 pixel holds at most one pixel centre, so 2 frame pixels at 32x32 (the old
+      rule) are impossible beyond 2r / p32 = 0.83 m (< 0.9 px at d >= 1 m, off-axis included): the
+      old rule can only add the apple's node inside the 1 m success radius;
+    - a disk of radius >= 1 pixel holds >= 2 pixel centres: the 128x128 reference (2 pixels) always
+      discovers it by r / p128 = 1.66 m; radius >= 1/sqrt(2) pixel holds >= 1: the fair rule (1 pixel
+      at 32x32) always does by r / (0.707 p32) = 0.59 m, the old rule by r / p32 = 0.42 m.
+    Beyond the guarantees the fair rule's first discovery is point-sampling luck; over the phases its
+    median is outside the success radius (bench discovery: 1.35 m at 32x32, 2.64 m at 128x128)."""
+    p32 = 2 * np.tan(np.radians(60)) / 32
+    yaws = np.arctan((np.arange(8) + 0.5) / 16 * p32)  # the scene is mirror-symmetric about y = 0
+    dists = 2.5 / 1.02 ** np.arange(94)  # 2.5 m -> 0.39 m, 2 % steps
+    old, fair = _apple_approach(32, [GraphConfig(pixel_reference=None), GraphConfig()], dists, yaws)
+    first = lambda f: np.where(f.any(-1), dists[np.argmax(f, -1)], 0.0)  # per phase, 0: never
+    assert not old[:, dists >= 1.0].any()
+    assert old[:, np.argmin(np.abs(dists - 0.4))].all()
+    assert (first(old) <= 0.83).all() and (first(fair) >= first(old)).all()
+    assert fair[:, np.argmax(dists <= 0.58)].all()
+    assert np.median(first(fair)) > 1.0 > np.median(first(old))
+    ref = _apple_approach(128, [GraphConfig()], np.array([3.5, 1.6]), yaws)[0]
+    assert ref[:, 1].all() and not ref[:, 0].any()  # 3.5 m: < 1 px (at most 1 centre)
