@@ -113,7 +113,12 @@ PRESETS: dict[str, dict[str, dict]] = {
     'default': {'choice': {}, 'navigation': {}},
     'paper': {
         'choice': _PAPER_PPO,
-        'navigation': {**_PAPER_PPO, 'env.camera.width': 128, 'env.camera.height': 128},
+        'navigation': {
+            **_PAPER_PPO,
+            'env.camera.width': 128,
+            'env.camera.height': 128,
+            'env.map.crop': 128,  # the release's metric map: 128 x 128 cells of 0.23 m
+        },
     },
 }
 

@@ -1,5 +1,7 @@
 """Tests of hron_jax.metric_map: cells of a known box from a real camera frame, highest point wins,
-accumulation, egocentric crop orientation, global view, pre-mapping.
+accumulation, egocentric crop orientation, global view, pre-mapping; and of the model's map branch
+(models.encoders.MapEncoder) on its observations: channel layout, class embedding, rgbd_mm end to
+end on NavigationEnv observations.
 
 The box scene is written here: a 6 m x 6 m floor centred at the origin (so the grid origin is
 (-3, -3)), one cabinet box whose footprint covers exactly the cells [15, 19) x [11, 15) with 8 cm
@@ -266,3 +268,190 @@ def test_premap_contents():
     both = np.asarray(mm.update(mm.reset(), pose, f.depth, f.semantic))
     np.testing.assert_array_equal(both[obj], seen[obj])
     np.testing.assert_array_equal(both[~obj], key[~obj])
+
+
+# --- the model's map branch (models.encoders.MapEncoder) on this module's observations ----------
+SMALL_CONV = dict(features=(4, 4, 4), kernels=(4, 3, 3), strides=(2, 2, 1), fc=(8, 8, 8))
+
+
+def _map_encoder(class_features=3):
+    from hron_jax.models.encoders import MapEncoder
+
+    return MapEncoder(NC, class_features, **SMALL_CONV)
+
+
+def _random_params(module, x, seed=0):
+    """Variables of `module` for input `x`: normals, std sqrt(2 / fan-in) for kernels and tables,
+    0.1 for biases (nonzero, so no layer is exactly linear or dead by construction)."""
+    shapes = jax.eval_shape(module.init, jax.random.PRNGKey(0), x)
+    r = np.random.default_rng(seed)
+
+    def fill(s):
+        std = np.sqrt(2.0 / np.prod(s.shape[:-1])) if len(s.shape) >= 2 else 0.1
+        return jnp.asarray(r.standard_normal(s.shape) * std, s.dtype)
+
+    return jax.tree.map(fill, shapes)
+
+
+def _key_with_blocks(shape, blocks):
+    """Key grid with each (i0, i1, j0, j1, height_mm, class) block filled, -1 elsewhere."""
+    key = np.full(shape, -1, np.int32)
+    for i0, i1, j0, j1, h, c in blocks:
+        key[i0:i1, j0:j1] = h * NC + c
+    return key
+
+
+BLOCKS = [
+    (2, 6, 3, 9, 0, ROOM_CLS),
+    (8, 12, 5, 8, 500, BOX_CLS),
+    (14, 16, 14, 20, 70, BOWL_CLS),
+    (20, 23, 1, 4, 2500, V.STRUCTURE_CLASS),
+]
+
+
+def test_map_encoder_reads_observe_channel_layout(box):
+    """The encoder's first conv sees exactly [observed, height, (heading), embed(class) if observed],
+    each built here from the key (not from observe's channels): the encoder's reading of the
+    channels is the layout observe writes, in the global and the egocentric view."""
+    from hron_jax import metric_map
+    from hron_jax.models import encoders
+
+    assert encoders.MAP_OBSERVED_CHANNEL == metric_map.OBSERVED_CHANNEL
+    assert encoders.MAP_CLASS_CHANNEL == metric_map.CLASS_CHANNEL
+    scene = box["scene"]
+    mm_g = MetricMap(scene, DOWN, MapConfig(egocentric=False))
+    key = _key_with_blocks(mm_g.shape, BLOCKS)
+    pose = np.array([0.4, -0.7, 0.9], np.float32)
+    enc = _map_encoder()
+
+    def expected(params, k, extra):
+        seen = k >= 0
+        table = np.asarray(params["params"]["class_embed"]["embedding"])
+        feats = [
+            seen[..., None].astype(np.float32),
+            (np.where(seen, k // NC, 0) / 1000.0 / 2.5)[..., None].astype(np.float32),
+            *extra,
+            np.where(seen[..., None], table[np.where(seen, k % NC, 0)], 0.0).astype(np.float32),
+        ]
+        x = np.concatenate(feats, -1)
+        return encoders.ConvEncoder(**SMALL_CONV).apply({"params": params["params"]["conv"]}, x)
+
+    # Global view: cell (i, j) of the observation is cell (i, j) of the key; heading in 3-4.
+    obs_g = mm_g.observe(jnp.asarray(key), jnp.asarray(pose))
+    params = _random_params(enc, obs_g)
+    heading = np.asarray(obs_g[..., 3:])
+    np.testing.assert_allclose(enc.apply(params, obs_g), expected(params, key, [heading]), atol=1e-4)
+
+    # Egocentric view at yaw 0 with the agent on a cell corner: crop cell (r, c) is grid cell
+    # (K + M/2 - 1 - r, L + M/2 - 1 - c) (rows ahead = +x, columns left = +y), -1 off the grid.
+    m = 24
+    mm_e = MetricMap(scene, DOWN, MapConfig(crop=m))
+    K, L = 12, 9
+    pose = np.array([-3 + K * C, -3 + L * C, 0.0], np.float32)
+    obs_e = mm_e.observe(jnp.asarray(key), jnp.asarray(pose))
+    assert obs_e.shape == (m, m, 3)
+    gi, gj = np.meshgrid(K + m // 2 - 1 - np.arange(m), L + m // 2 - 1 - np.arange(m), indexing="ij")
+    inside = (gi >= 0) & (gi < mm_e.shape[0]) & (gj >= 0) & (gj < mm_e.shape[1])
+    k_e = np.where(inside, key[np.clip(gi, 0, mm_e.shape[0] - 1), np.clip(gj, 0, mm_e.shape[1] - 1)], -1)
+    assert (k_e >= 0).sum() > 20 and len(np.unique(k_e[k_e >= 0] % NC)) == 4
+    params = _random_params(enc, obs_e, seed=1)
+    np.testing.assert_allclose(enc.apply(params, obs_e), expected(params, k_e, []), atol=1e-4)
+
+
+def test_map_encoder_class_is_categorical(box):
+    """The class reaches the output only through its embedding row, never as a number:
+    relabelling the classes by any permutation, with the table's rows permuted alike, leaves the
+    output unchanged (a scalar class channel cannot do that: its first layer is affine in the id),
+    while relabelling the map alone changes it; two classes whose rows are equal are
+    indistinguishable; an all-zero table makes the output independent of the class channel; the
+    class of an unobserved cell is never read."""
+    mm = MetricMap(box["scene"], DOWN, MapConfig(egocentric=False))
+    key = _key_with_blocks(mm.shape, BLOCKS)
+    obs = np.asarray(mm.observe(jnp.asarray(key), jnp.asarray([0.0, 0.0, 0.0], jnp.float32)))
+    enc = _map_encoder()
+    params = _random_params(enc, obs)
+    apply = jax.jit(enc.apply)
+    out = np.asarray(apply(params, obs))
+    table = params["params"]["class_embed"]["embedding"]
+
+    def relabel(o, perm):
+        o = o.copy()
+        o[..., 2] = perm[o[..., 2].astype(int)]
+        return o
+
+    def with_table(t):
+        return {"params": {**params["params"], "class_embed": {"embedding": t}}}
+
+    perm = np.random.default_rng(3).permutation(NC)
+    inv = np.argsort(perm)
+    same = np.asarray(apply(with_table(table[inv]), relabel(obs, perm)))  # row perm[c] = old row c
+    np.testing.assert_allclose(same, out, atol=1e-5)
+    assert np.abs(np.asarray(apply(params, relabel(obs, perm))) - out).max() > 1e-3
+
+    # Classes 3 and 17 on the bowl's and the box's cells: equal rows -> equal outputs; the swap of
+    # two ids is no "larger" or "smaller" change than any other.
+    a, b = 3, 17
+    swap = np.arange(NC)
+    swap[[BOWL_CLS, BOX_CLS]] = [a, b]
+    o1 = relabel(obs, swap)
+    swap[[BOWL_CLS, BOX_CLS]] = [b, a]
+    o2 = relabel(obs, swap)
+    tied = table.at[b].set(table[a])
+    np.testing.assert_allclose(apply(with_table(tied), o1), apply(with_table(tied), o2), atol=1e-6)
+    assert np.abs(np.asarray(apply(params, o1)) - np.asarray(apply(params, o2))).max() > 1e-3
+
+    zero = with_table(jnp.zeros_like(table))
+    shuffled = obs.copy()
+    shuffled[..., 2] = np.random.default_rng(4).integers(0, NC, obs.shape[:2])
+    np.testing.assert_allclose(apply(zero, shuffled), apply(zero, obs), atol=1e-6)
+
+    unseen = obs[..., 0] == 0
+    garbage = obs.copy()
+    garbage[..., 2] = np.where(unseen, 7.0, obs[..., 2])
+    np.testing.assert_array_equal(apply(params, garbage), out)
+
+
+def test_rgbd_mm_on_navigation_env_observations():
+    """End to end: the rgbd_mm model on NavigationEnv observations (metric_map, premap so the map
+    holds many classes): forward on a batch of two resets, finite gradients, and the class table
+    gets gradient exactly on the rows of the classes seen in the maps."""
+    from hron_jax.envs import make_env
+    from hron_jax.models import ModelConfig, make_model
+
+    env = make_env("exploratory", image_size=8, metric_map=True, premap=True, max_steps=20)
+    reset = jax.jit(env.reset)
+    states = [reset(jax.random.PRNGKey(s)) for s in (0, 1)]
+    obs = jax.tree.map(lambda *a: jnp.stack(a), *[s.obs for s in states])
+    m = env.config.map.crop
+    assert obs["map"].shape == (2, m, m, 3)
+    seen_classes = np.unique(np.asarray(obs["map"])[..., 2][np.asarray(obs["map"])[..., 0] > 0])
+    assert len(seen_classes) >= 3 and (seen_classes > V.NOTHING_CLASS).all()
+
+    cfg = ModelConfig(
+        conv_features=(4, 4, 4),
+        conv_kernels=(8, 4, 3),
+        conv_strides=(4, 2, 1),
+        cnn_fc=(16, 16, 16),
+        goal_fc=(16, 16, 16),
+        fusion_fc=(16, 16, 16),
+        head_fc=(16, 16),
+    )
+    model = make_model("rgbd_mm", env.num_actions, cfg)
+    # Random variables of the model's structure (flax init compiles one QR per weight shape).
+    variables = _random_params(model, jax.tree.map(lambda a: a[0], obs))
+
+    @jax.jit
+    def run(v, o):
+        def loss(p):
+            logits, value = model.apply(p, o)
+            return jnp.sum(jax.nn.log_softmax(logits)[:, 0]) + jnp.sum(value**2), (logits, value)
+
+        return jax.grad(loss, has_aux=True)(v)
+
+    grads, (logits, value) = run(variables, obs)
+    assert logits.shape == (2, env.num_actions) and value.shape == (2,)
+    assert np.isfinite(np.asarray(logits)).all() and np.isfinite(np.asarray(value)).all()
+    assert all(np.isfinite(np.asarray(g)).all() for g in jax.tree.leaves(grads))
+    g_table = np.asarray(grads["params"]["core"]["map_encoder"]["class_embed"]["embedding"])
+    has_grad = np.abs(g_table).max(-1) > 0
+    np.testing.assert_array_equal(np.nonzero(has_grad)[0], seen_classes.astype(int))

@@ -1,12 +1,15 @@
 """Tests of hron_jax.models: PyG agreement, masking, equivariance, pooling, every variant.
 
 The PyG references (tests/data/*_reference.npz) are frozen outputs of torch_geometric 2.8 made by
-tools/make_pyg_reference.py; torch is not needed here.
+tools/make_pyg_reference.py; torch is not needed here. HGTConv(softmax='per_relation'), the
+paper-era PyG <= 2.2 attention, is checked against `_np_hgt_per_relation`, a NumPy loop version.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
 import pathlib
 
 import jax
@@ -16,6 +19,7 @@ import numpy as np
 import pytest
 
 from hron_jax import graph_types as gt
+from hron_jax.errors import ConfigError
 from hron_jax.models import (
     VARIANTS,
     ActorCritic,
@@ -303,6 +307,297 @@ def test_illegal_relation_triple_is_dropped():
     assert gt.check_graph_types(
         np.asarray(node_type), [0, 1], [1, 0], [gt.ON_TOP, gt.IN_ROOM], [True, True]
     ).tolist() == [0]
+
+
+# --- HGT softmax variants: paper-era per-relation softmax (PyG <= 2.2) vs joint (PyG >= 2.3) ----
+def _np_hgt_per_relation(p, x, node_type, node_mask, senders, receivers, relation, edge_mask, heads):
+    """Paper-era HGTConv (PyG <= 2.2; ../shared/DESIGN.md) from its formula, loops in float64.
+
+    Independent of hron_jax.models.gnn: per live target node i and relation triple r, softmax of
+    <q_i, k_j W_att[r]> p_rel[r] / sqrt(D) over i's live incoming edges of relation r only, their
+    values v_j W_msg[r] weighted by it, summed over r; then gelu, A_t and the gated skip. An edge
+    counts if it is masked in, both endpoints are live and r is a legal triple whose source type
+    is the sender's. `p` holds the flax parameters (kqv blocks in PyG's k | q | v order).
+    Cross-checked once (not frozen: torch_scatter, which PyG 2.2 needs, did not build here) against
+    torch_geometric 2.2.0's own HGTConv, with a torch.scatter_reduce stand-in for torch_scatter, on
+    the 'pyg' and 'random' graphs below: max abs difference 4.4e-16 in float64.
+    """
+    p = {k: np.asarray(v, np.float64) for k, v in p.items()}
+    x = np.asarray(x, np.float64)
+    n, f_in = x.shape
+    f = p["out_kernel"].shape[-1]
+    d = f // heads
+    src_type = [s for s, _, _ in gt.RELATION_TRIPLES]
+    kqv = {}
+    for i in range(n):
+        if node_mask[i]:
+            t = node_type[i]
+            y = x[i] @ p["kqv_kernel"][t] + p["kqv_bias"][t]
+            kqv[i] = [y[j * f : (j + 1) * f].reshape(heads, d) for j in range(3)]  # k, q, v
+    out = np.zeros((n, f))
+    for i in range(n):
+        if not node_mask[i]:
+            continue
+        agg = np.zeros((heads, d))
+        for r in range(gt.NUM_RELATIONS):
+            srcs = [
+                senders[e]
+                for e in range(len(senders))
+                if receivers[e] == i
+                and relation[e] == r
+                and edge_mask[e]
+                and node_mask[senders[e]]
+                and node_type[senders[e]] == src_type[r]
+            ]
+            for h in range(heads):
+                if not srcs:
+                    continue
+                keys = np.stack([kqv[j][0][h] @ p["k_rel"][r, h] for j in srcs])
+                vals = np.stack([kqv[j][2][h] @ p["v_rel"][r, h] for j in srcs])
+                score = keys @ kqv[i][1][h] * p["p_rel"][r, h] / np.sqrt(d)
+                w = np.exp(score - score.max())
+                agg[h] += (w / w.sum()) @ vals
+        a = agg.reshape(f)
+        gelu = 0.5 * a * (1.0 + np.vectorize(math.erf)(a / np.sqrt(2.0)))
+        t = node_type[i]
+        o = gelu @ p["out_kernel"][t] + p["out_bias"][t]
+        if f_in == f:
+            gate = 1.0 / (1.0 + np.exp(-p["skip"][t]))
+            o = gate * o + (1.0 - gate) * x[i]
+        out[i] = o
+    return out
+
+
+def _np_two_layers(p1, p2, g):
+    """`_np_hgt_per_relation` twice, relu between (as `_hgt_two_layers_rel`), on a graph dict."""
+    args = (g["node_type"], g["mask"], g["senders"], g["receivers"], g["rel"], g["edge_mask"], 2)
+    ref1 = _np_hgt_per_relation(p1, g["x"], *args)
+    return ref1, _np_hgt_per_relation(p2, np.maximum(ref1, 0.0), *args)
+
+
+def _np_relations(g):
+    """Relation triple of every edge straight from graph_types' table (-1 = illegal)."""
+    return gt.RELATION_INDEX[g["edge_type"], g["node_type"][g["senders"]], g["node_type"][g["receivers"]]]
+
+
+@functools.partial(jax.jit, static_argnames="softmax")
+@jax.default_matmul_precision("highest")
+def _hgt_two_layers_rel(p1, p2, x, node_type, mask, senders, receivers, rel, edge_mask, softmax):
+    """Two stacked HGTConv (16 wide, 2 heads) with the given softmax; one graph or a batch."""
+    layer = HGTConv(16, heads=2, softmax=softmax)
+    args = (node_type, mask, senders, receivers, rel, edge_mask)
+    h1, s1 = layer.apply({"params": p1}, x, *args, mutable=["attention"])
+    h2 = layer.apply({"params": p2}, jax.nn.relu(h1), *args)
+    return h1, h2, s1["attention"]["alpha"][0]
+
+
+def _call_rel(p1, p2, g, softmax):
+    keys = ("x", "node_type", "mask", "senders", "receivers", "rel", "edge_mask")
+    return tuple(np.asarray(a) for a in _hgt_two_layers_rel(p1, p2, *(g[k] for k in keys), softmax=softmax))
+
+
+def _random_hetero_graph(seed):
+    """A small graph with random legal typed edges (several relations into most nodes, duplicates,
+    one live node without in-edges) and random HGT weights 16 -> 16 (gated residual in both
+    layers), attention sharpened and p_rel / skip randomised like the PyG reference."""
+    rng = np.random.default_rng(seed)
+    node_type = rng.permutation(np.repeat(np.arange(3), [3, 4, 6])).astype(np.int32)
+    n = len(node_type)
+    isolated = n - 1  # gets no in-edge
+    senders, receivers, edge_type = [], [], []
+    while len(senders) < 45:
+        s, r = rng.integers(0, n, 2)
+        ok = np.nonzero(gt.RELATION_INDEX[:, node_type[s], node_type[r]] >= 0)[0]
+        if r != isolated and len(ok):
+            senders.append(s), receivers.append(r), edge_type.append(rng.choice(ok))
+    g = dict(
+        x=rng.standard_normal((n, 16)).astype(np.float32),
+        node_type=node_type,
+        mask=np.ones(n, bool),
+        senders=np.array(senders, np.int32),
+        receivers=np.array(receivers, np.int32),
+        edge_type=np.array(edge_type, np.int32),
+        edge_mask=np.ones(len(senders), bool),
+    )
+    layer = HGTConv(16, heads=2)
+    args = (g["node_type"], g["mask"], g["senders"], g["receivers"], _np_relations(g), g["edge_mask"])
+    params = []
+    for k in jax.random.split(jax.random.key(seed), 2):
+        p = jax.tree.map(np.asarray, layer.init(k, g["x"], *args)["params"])
+        p["kqv_kernel"] = 3.0 * p["kqv_kernel"]
+        p["p_rel"] = rng.uniform(0.5, 1.5, p["p_rel"].shape).astype(np.float32)
+        p["skip"] = rng.standard_normal(p["skip"].shape).astype(np.float32)
+        params.append(p)
+    return params[0], params[1], g
+
+
+def _per_relation_case(name):
+    """(p1, p2, padded graph with 'rel', rows of the original nodes) for 'pyg' (the frozen PyG
+    graph and weights, 12 -> 16 -> 16) or 'random' (`_random_hetero_graph`), padded by `_pad` with
+    NaN in the dead rows."""
+    if name == "pyg":
+        _, p1, p2, g, _ = _reference("hgt")
+    else:
+        p1, p2, g = _random_hetero_graph(11)
+    gp, rows = _pad(g, 6, 24, np.random.default_rng(12), garbage=np.nan)
+    gp["rel"] = _np_relations(gp).astype(np.int32)
+    return p1, p2, gp, rows
+
+
+def _live_relations_per_receiver(g):
+    live = g["edge_mask"] & g["mask"][g["senders"]] & g["mask"][g["receivers"]] & (g["rel"] >= 0)
+    kinds = [set() for _ in g["x"]]
+    for r, rel in zip(g["receivers"][live], g["rel"][live]):
+        kinds[r].add(int(rel))
+    return live, kinds
+
+
+@pytest.mark.parametrize("batched", [False, True], ids=["single", "batch"])
+@pytest.mark.parametrize("case", ["pyg", "random"])
+def test_hgt_per_relation_matches_numpy_reference(case, batched):
+    """softmax='per_relation' equals the paper-era formula (`_np_hgt_per_relation`, float64) on a
+    padded heterogeneous graph: several relations into one node, nodes lacking some relations,
+    a live node without in-edges, masked / padded / dead-endpoint edges and NaN in dead rows.
+    Tolerance 1e-5 absolute: the layer runs in float32 (highest matmul precision) against a float64
+    reference; outputs are O(1), so float32 rounding through two layers stays near 1e-6."""
+    p1, p2, g, rows = _per_relation_case(case)
+    live, kinds = _live_relations_per_receiver(g)
+    assert max(len(k) for k in kinds) >= 2  # some receiver gets several relation types
+    assert any(m and not k for m, k in zip(g["mask"], kinds))  # a live node without in-edges
+    assert (~g["edge_mask"]).any() and (g["edge_mask"] & ~live).any()
+    ref1, ref2 = _np_two_layers(p1, p2, g)
+    if batched:  # the same graph twice, as a batch [2, ...] (the disjoint-union fast path)
+        gb = {k: np.stack([v, v]) for k, v in g.items()}
+        outs = _call_rel(p1, p2, gb, "per_relation")
+        np.testing.assert_array_equal(outs[1][0], outs[1][1])
+        h1, h2, _ = (o[0] for o in outs)
+    else:
+        h1, h2, _ = _call_rel(p1, p2, g, "per_relation")
+    err1, err2 = np.abs(h1 - ref1).max(), np.abs(h2 - ref2).max()
+    print(
+        f"per_relation vs numpy reference ({case}, {'batch' if batched else 'single'}): "
+        f"layer1 max err {err1:.2e}, layer2 max err {err2:.2e}"
+    )
+    assert np.isfinite(h2).all()
+    assert err1 < TOL and err2 < TOL
+    assert (h2[~g["mask"]] == 0).all()
+    assert np.abs(ref2).max() > 0.1  # not trivially small
+
+
+@pytest.mark.parametrize("case", ["pyg", "random"])
+def test_hgt_joint_differs_from_per_relation(case):
+    """Negative control: on graphs where nodes receive 2+ relation types the joint softmax does
+    not reproduce the per-relation reference (and the per-relation layer does not reproduce the
+    frozen PyG 2.8 joint output)."""
+    p1, p2, g, rows = _per_relation_case(case)
+    ref1, _ = _np_two_layers(p1, p2, g)
+    j1, j2, _ = _call_rel(p1, p2, g, "joint")
+    diff = np.abs(j1 - ref1).max()
+    print(f"joint vs per_relation reference ({case}): layer1 max diff {diff:.2e}")
+    assert diff > 1e-2
+    if case == "pyg":
+        d = _load("hgt_reference.npz")
+        pr1, _, _ = _call_rel(p1, p2, g, "per_relation")
+        np.testing.assert_allclose(j1[rows], d["out1"], atol=TOL, rtol=0)  # joint is PyG 2.8's form
+        assert np.abs(pr1[rows] - d["out1"]).max() > 1e-2
+
+
+def test_hgt_per_relation_equals_joint_with_one_relation_per_receiver():
+    """Sanity: when every node receives edges of at most one relation triple, both softmaxes
+    normalise over the same sets, so outputs and attention agree."""
+    p1, p2, g, _ = _per_relation_case("pyg")
+    live, _ = _live_relations_per_receiver(g)
+    first = {}
+    for e in np.nonzero(live)[0]:
+        first.setdefault(int(g["receivers"][e]), int(g["rel"][e]))
+    keep = np.array([not live[e] or first[int(g["receivers"][e])] == g["rel"][e] for e in range(len(live))])
+    g1 = {
+        k: (v[keep] if k in ("senders", "receivers", "edge_type", "edge_mask", "rel") else v)
+        for k, v in g.items()
+    }
+    _, kinds = _live_relations_per_receiver(g1)
+    assert max(len(k) for k in kinds) == 1 and sum(map(len, kinds)) >= 10
+    a = _call_rel(p1, p2, g1, "joint")
+    b = _call_rel(p1, p2, g1, "per_relation")
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x, y, atol=1e-6, rtol=0)
+
+
+def test_hgt_per_relation_attention_is_one_unit_per_relation():
+    """Under per_relation each receiver hands out one unit of attention per incoming relation
+    triple (not one in total): alpha sums to 1 over each (receiver, relation) group with a live
+    edge, per head; dead edges get 0; the shape is [E, H] as for joint."""
+    p1, p2, g, _ = _per_relation_case("pyg")
+    live, kinds = _live_relations_per_receiver(g)
+    _, _, alpha = _call_rel(p1, p2, g, "per_relation")
+    assert alpha.shape == (len(g["senders"]), 2)
+    assert (alpha[~live] == 0).all()
+    sums = {}
+    for e in np.nonzero(live)[0]:
+        key = (int(g["receivers"][e]), int(g["rel"][e]))
+        sums[key] = sums.get(key, 0.0) + alpha[e]
+    np.testing.assert_allclose(np.stack(list(sums.values())), 1.0, atol=1e-6)
+    per_node = np.zeros((len(g["x"]), 2))
+    np.add.at(per_node, g["receivers"][live], alpha[live])
+    np.testing.assert_allclose(per_node[:, 0], [len(k) for k in kinds], atol=1e-5)
+
+
+@pytest.mark.parametrize("batched", [False, True], ids=["single", "batch"])
+def test_hgt_per_relation_gradients_are_finite(batched):
+    """Gradients w.r.t. parameters and inputs are finite with per_relation: empty (receiver,
+    relation) groups, dead edges and NaN in dead rows leak nothing."""
+    p1, p2, g, _ = _per_relation_case("random")
+    if batched:
+        g = {k: np.stack([v, v]) for k, v in g.items()}
+    g = dict(g, x=np.where(g["mask"][..., None], g["x"], 0.0))  # the dead rows of x still get a gradient
+
+    def loss(p1, p2, x):
+        h1, h2, _ = _hgt_two_layers_rel(
+            p1,
+            p2,
+            x,
+            g["node_type"],
+            g["mask"],
+            g["senders"],
+            g["receivers"],
+            g["rel"],
+            g["edge_mask"],
+            "per_relation",
+        )
+        return jnp.sum(jnp.sin(h2))
+
+    grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))(p1, p2, g["x"])
+    leaves = [np.asarray(a) for a in jax.tree.leaves(grads)]
+    assert all(np.isfinite(a).all() for a in leaves)
+    assert np.abs(grads[0]["k_rel"]).max() > 0 and np.abs(grads[1]["p_rel"]).max() > 0
+
+
+def test_hgt_softmax_option_is_validated():
+    assert ModelConfig().hgt_softmax == "joint"
+    assert ModelConfig(hgt_softmax="per_relation").hgt_softmax == "per_relation"
+    with pytest.raises(ConfigError) as err:
+        ModelConfig(hgt_softmax="per_edge")
+    assert err.value.field == "hgt_softmax"
+    x = np.zeros((2, 16), np.float32)
+    args = (np.zeros(2, np.int32), np.ones(2, bool), np.zeros(1, np.int32), np.ones(1, np.int32))
+    with pytest.raises(ValueError, match="softmax"):
+        HGTConv(16, softmax="per_edge").init(
+            jax.random.key(0), x, *args, np.zeros(1, np.int32), np.ones(1, bool)
+        )
+
+
+def test_hgt_softmax_reaches_the_model():
+    # House graphs: a room receives inRoom from furniture and roomConnected from rooms, so the two
+    # softmaxes give different outputs from the same parameters once the option reaches HGTConv.
+    from hron_jax.bench.model import model_inputs
+
+    obs, _ = model_inputs(batch=2, image=8)
+    cfg = ModelConfig(hidden=16, heads=1, gnn_layers=1, cnn_fc=(16, 16, 16), goal_fc=(16, 16, 16))
+    joint = make_model("rgbd_sg_attn", 5, cfg)
+    per = make_model("rgbd_sg_attn", 5, dataclasses.replace(cfg, hgt_softmax="per_relation"))
+    params = joint.init(jax.random.key(0), obs)
+    (lj, vj), (lp, vp) = joint.apply(params, obs), per.apply(params, obs)
+    assert float(jnp.abs(lj - lp).max() + jnp.abs(vj - vp).max()) > 1e-6
 
 
 # --- pooling ---------------------------------------------------------------------------------

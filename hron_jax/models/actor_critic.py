@@ -1,6 +1,6 @@
 """Actor-critic network of the paper and its baselines, selectable by name with `make_model`.
 
-    obs -> [RGB-D CNN] [metric-map CNN] [scene-graph GNN + pooling] [goal MLP]  (per variant)
+    obs -> [RGB-D CNN] [metric-map class embedding + CNN] [scene-graph GNN + pooling] [goal MLP] (per variant)
         -> concat -> fusion (3 FC) -> policy head (3 FC) -> logits f32[num_actions]
                                    -> value head  (3 FC) -> value  f32[]
 
@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from hron_jax.models.config import VARIANTS, ModelConfig
-from hron_jax.models.encoders import MLP, ConvEncoder, SceneGraphEncoder
+from hron_jax.models.encoders import MLP, ConvEncoder, MapEncoder, SceneGraphEncoder
 from hron_jax.models.word_vectors import load_category_vectors
 
 
@@ -62,7 +62,10 @@ class _ActorCriticCore(nn.Module):
             img = ConvEncoder(**conv, name="rgbd_encoder")(_rgbd(obs))
             feats.append(img)
         if cfg.use_map:
-            feats.append(ConvEncoder(**conv, name="map_encoder")(obs["map"]))
+            # The RGB-D branch's conv stack on [map channels, embedding of the class channel].
+            feats.append(
+                MapEncoder(self.num_classes, cfg.map_class_features, **conv, name="map_encoder")(obs["map"])
+            )
 
         word_vectors = None
         if cfg.node_features == "word_vectors" or cfg.goal_encoding == "word_vector":

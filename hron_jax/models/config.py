@@ -35,6 +35,8 @@ class ModelConfig:
     Image / map / goal branches
         conv_features, conv_kernels, conv_strides: the 3 conv layers (SAME padding, ReLU).
         cnn_fc: widths of the 3 FC layers after flattening (RGB-D and metric-map branches).
+        map_class_features: width of the learned embedding of the metric map's class channel
+            (encoders.MapEncoder: a class id is a category, not a magnitude).
         goal_fc: widths of the 3 FC layers of the goal MLP.
         goal_encoding: 'one_hot' (obs['goal']) or 'word_vector' (Yang et al.: word vector of
             obs['goal_classes'][0], the target object's class).
@@ -60,6 +62,7 @@ class ModelConfig:
     conv_kernels: tuple[int, int, int] = (8, 4, 3)
     conv_strides: tuple[int, int, int] = (4, 2, 1)
     cnn_fc: tuple[int, int, int] = (256, 128, 128)
+    map_class_features: int = 8
     goal_fc: tuple[int, int, int] = (128, 128, 128)
     goal_encoding: Literal["one_hot", "word_vector"] = "one_hot"
 

@@ -5,7 +5,9 @@ All modules take ONE observation or a batch of them (leading [B] axis on every i
 
 - `MLP`: Dense + ReLU per width.                                f32[I] -> f32[widths[-1]]
 - `ConvEncoder`: 3 conv (SAME padding, ReLU), flatten, 3 FC.     f32[H, W, C] -> f32[fc[-1]]
-  (RGB-D branch, and the metric-map branch of `rgbd_mm`, which the paper makes identical.)
+  (RGB-D branch, and the conv stack of the metric-map branch, which the paper makes identical.)
+- `MapEncoder`: metric-map branch of `rgbd_mm`: learned embedding of the class channel,
+  concatenated with the other channels, then a `ConvEncoder`.  f32[M, M, C] -> f32[fc[-1]]
 - `NodeFeaturizer`: category embedding + node-type embedding + linear(pos, size).
                                                                  graph nodes -> f32[N, hidden]
 - `WordVectorNodeFeaturizer` (Yang et al.): linear of [word vector of the category, image code].
@@ -106,6 +108,54 @@ class ConvEncoder(nn.Module):
         return out if img.ndim == 4 else out[0]
 
 
+# Channels of obs['map']: observed 0/1 and the semantic class id (an exact integer in a float);
+# = hron_jax.metric_map.OBSERVED_CHANNEL / CLASS_CHANNEL (tested; not imported here: metric_map
+# pulls in MuJoCo).
+MAP_OBSERVED_CHANNEL = 0
+MAP_CLASS_CHANNEL = 2
+
+
+class MapEncoder(nn.Module):
+    """Metric-map branch: class embedding + the other channels -> `ConvEncoder`.
+
+    Input: obs['map'] f32[(B,) M, M, C] as hron_jax.metric_map.MetricMap.observe writes it: channel 0
+    (`MAP_OBSERVED_CHANNEL`) observed 0/1, 1 height / max_height, 2 (`MAP_CLASS_CHANNEL`) the class
+    id (0 where unobserved), and in the global view 3-4 the agent's heading. Output: f32[(B,) fc[-1]].
+
+    The class id is a category, not a quantity: fed as a scalar channel, the first conv's response
+    is affine in the id (class 17 is "more" than class 3, and the network can only tell classes
+    apart by thresholds on that arbitrary order). Here it picks a learned row of an `nn.Embed(num_classes,
+    class_features)` table instead (the `rgbd_mm` counterpart of the scene graph's category
+    embedding), concatenated with the remaining channels before the first conv:
+        x = [map without the class channel, where(observed, embed(class), 0)]   f32[M, M, C-1+E]
+    Unobserved cells get the zero vector (the fixed "unknown" entry) rather than a learned row:
+    that is also what the conv's SAME padding feeds beyond the crop's border and what `observe`
+    writes for cells off the grid, so "never seen", "off the map" and "outside the crop" read alike,
+    and the observed channel still separates them from seen cells. The env keeps emitting the
+    compact integer channel (1 float per cell in the rollout buffers instead of num_classes for a
+    one-hot); embedding is the one-hot times a learned matrix, done where it is learned. Ids are
+    rounded and clipped to [0, num_classes) (the rollout may carry the float channel in any dtype).
+    """
+
+    num_classes: int
+    class_features: int
+    features: Sequence[int]
+    kernels: Sequence[int]
+    strides: Sequence[int]
+    fc: Sequence[int]
+    class_channel: int = MAP_CLASS_CHANNEL
+
+    @nn.compact
+    def __call__(self, m):
+        c = self.class_channel
+        cls = jnp.clip(jnp.round(m[..., c]).astype(jnp.int32), 0, self.num_classes - 1)
+        observed = m[..., MAP_OBSERVED_CHANNEL, None] > 0.5
+        emb = nn.Embed(self.num_classes, self.class_features, name="class_embed")(cls)
+        rest = jnp.concatenate([m[..., :c], m[..., c + 1 :]], axis=-1).astype(emb.dtype)
+        x = jnp.concatenate([rest, jnp.where(observed, emb, 0.0)], axis=-1)
+        return ConvEncoder(self.features, self.kernels, self.strides, self.fc, name="conv")(x)
+
+
 def _node_arrays(graph):
     """(category, node_type, pos, size, mask) of a padded jraph graph (see models/__init__)."""
     n = graph.nodes
@@ -196,7 +246,7 @@ class SceneGraphEncoder(nn.Module):
             relation = edge_relations(node_type, senders, receivers, edge_type)
         for i in range(cfg.gnn_layers):
             if cfg.gnn == "hgt":
-                h = HGTConv(cfg.hidden, cfg.heads, name=f"hgt_{i}")(
+                h = HGTConv(cfg.hidden, cfg.heads, softmax=cfg.hgt_softmax, name=f"hgt_{i}")(
                     h, node_type, mask, senders, receivers, relation, edge_mask
                 )
             else:
