@@ -166,12 +166,10 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
     abstract = jax.eval_shape(init, jax.ShapeDtypeStruct((config.num_seeds, 2), np.uint32))
     replicated = NamedSharding(mesh, PartitionSpec())
     env_sharded = NamedSharding(mesh, PartitionSpec(None, 'devices'))
-    shardings = abstract.replace(
-        params=jax.tree.map(lambda _: replicated, abstract.params),
-        opt_state=jax.tree.map(lambda _: replicated, abstract.opt_state),
-        env_state=jax.tree.map(lambda _: env_sharded, abstract.env_state),
-        rng=replicated,
-        update=replicated,
+    # Env states are split over the devices; everything else (params, optimiser, rng, counters)
+    # is replicated.
+    shardings = jax.tree.map(lambda _: replicated, abstract).replace(
+        env_state=jax.tree.map(lambda _: env_sharded, abstract.env_state)
     )
     abstract = jax.tree.map(
         lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract, shardings

@@ -410,7 +410,7 @@ BAD_VALUES = {
     '--clip-eps': ['0', '-0.2'],
     '--ent-coef': ['-0.01'],
     '--vf-coef': ['-1'],
-    '--max-grad-norm': ['0'],
+    '--max-grad-norm': ['-1'],
     '--task': ['navigate'],
     '--model': ['resnet'],
     '--env-option': ['max_distractors=-1', 'image_size=0', 'nonsense=1', 'noequals', 'max_distractors=abc'],
@@ -581,8 +581,16 @@ def test_scene_paths_are_repo_relative_and_resolve_anywhere(tmp_path):
     assert cfg.scene == str(outside) and cfg.scene_path == str(outside)
 
 
-def test_eval_on_a_held_out_scene(tmp_path):
-    """eval.py RUN --scene OTHER evaluates the run's policy in a house it never saw."""
+def test_eval_on_a_held_out_scene(tmp_path, monkeypatch):
+    """eval.py RUN --scene OTHER evaluates the run's policy in a house it never saw: the env it
+    builds is the held-out house, its episodes start where that house's episode sampler puts the
+    eval keys' episodes (not where the training house's would), and eval.json reports exactly
+    those episodes with consistent SR / SPL / lengths."""
+    import jax.numpy as jnp
+
+    from hron_jax.scenes.loader import load_scene
+    from hron_jax.training import programs
+
     config = config_from_args(
         dict(
             task='exploratory',
@@ -603,15 +611,80 @@ def test_eval_on_a_held_out_scene(tmp_path):
     run_dir = tmp_path / 'run'
     train(config, run_dir)
     held_out = ROOT / 'scenes' / 'house_1.xml'
+    seen = {}
+    real_evaluate = evaluation.evaluate
+
+    def spy(env, *args, **kw):
+        seen['env'] = env
+        seen['result'] = real_evaluate(env, *args, **kw)
+        return seen['result']
+
+    monkeypatch.setattr(evaluation, 'evaluate', spy)
+    episodes = 2
     rc = evaluation.main(
-        [str(run_dir), '--scene', str(held_out), '--episodes', '2', '--plots', '0', '--compile-cache', 'none']
+        [
+            str(run_dir),
+            '--scene',
+            str(held_out),
+            '--episodes',
+            str(episodes),
+            '--plots',
+            '0',
+            '--compile-cache',
+            'none',
+        ]
     )
     assert rc == 0
     res = json.loads((run_dir / 'eval_trained_sampled_house_1' / 'eval.json').read_text())
     assert res['config']['scene'] == 'scenes/house_1.xml' and res['step'] == 1
-    assert res['summary']['episodes'] == 2
+    assert res['model'] == 'rgbd_sg_attn' and res['task'] == 'exploratory'
+    assert res['summary']['episodes'] == episodes and res['summary']['seeds'] == 1
+
+    # The env that played the episodes is the held-out house (not the training one).
+    env, result = seen['env'], seen['result']
+    env = getattr(env, 'unwrapped', env)
+    house_1, house = load_scene(held_out), load_scene(ROOT / 'scenes' / 'house.xml')
+    assert Path(env.scene.path).resolve() == held_out.resolve()
+    np.testing.assert_array_equal(env.scene.bounds, house_1.bounds)
+    assert not np.array_equal(house_1.bounds, house.bounds)
+    assert not env.auto_reset  # episodic evaluation
+
+    # Its episodes are the held-out house's episodes for the eval keys (reset(fold_in(key, i))
+    # draws sample_episode(split(.)[0])): start pose and goal, and the training house would have
+    # drawn other ones.
+    keys = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(jax.random.PRNGKey(0), i))[0])(
+        jnp.arange(episodes)
+    )
+    want = jax.device_get(jax.vmap(env.sample_episode)(keys))
+    train_env = programs(config).env  # the training house's env (cached by train above)
+    train_env = getattr(train_env, 'unwrapped', train_env)
+    other = jax.device_get(jax.vmap(train_env.sample_episode)(keys))
+    start = result['poses'][0, :, 0]  # [E, 3] pose before the first step
+    np.testing.assert_allclose(start, want.pose, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(result['states'].inner.goal)[0], want.goal)
+    assert np.abs(start - other.pose).max() > 0.1
+    lo, hi = house_1.bounds[0, :2], house_1.bounds[1, :2]
+    assert ((start[:, :2] > lo) & (start[:, :2] < hi)).all()
+    goal_rows = {tuple(g) for g in env.tables.goals[env.tables.goal_ok]}
+    assert all(tuple(g) in goal_rows for g in want.goal)
+
+    # eval.json holds exactly these episodes, and their metrics are consistent.
+    per = {k: np.asarray(v) for k, v in res['per_episode'].items()}
+    for k in ('success', 'spl', 'episode_length', 'path_length', 'return'):
+        assert per[k].shape == (1, episodes), k
+        np.testing.assert_allclose(per[k], result[k], rtol=1e-6, err_msg=k)
     for k in ('success', 'spl'):
         assert 0.0 <= res['summary'][k]['mean'] <= 1.0
+        assert res['summary'][k]['mean'] == pytest.approx(per[k].mean())
+    sr, spl, length = per['success'], per['spl'], per['episode_length']
+    assert set(np.unique(sr)) <= {0.0, 1.0}
+    assert ((spl >= 0) & (spl <= sr + 1e-6)).all() and (spl[sr == 0] == 0).all()
+    d0, path = result['d0'], per['path_length']
+    np.testing.assert_allclose(spl, sr * d0 / np.maximum(d0, path), rtol=1e-5, atol=1e-6)
+    max_steps = res['config']['env']['max_steps']
+    np.testing.assert_array_equal(length, result['end'] + 1)
+    assert (length <= max_steps).all() and (length[sr == 0] == max_steps).all()  # failure = time limit
+    assert (path <= env.sim.config.forward_m * length + 1e-3).all()
     # The training scene is untouched in the run's own config.
     assert load_config(run_dir).scene == 'scenes/house.xml'
     assert evaluation.main([str(run_dir), '--scene', 'scenes/no_such_scene.xml']) == 2
