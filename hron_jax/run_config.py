@@ -165,6 +165,7 @@ RANGES: dict[str, tuple[str, Any]] = {
     'env.max_steps': _AT_LEAST_1,
     'env.success_distance': _POSITIVE,
     'env.num_distractors': _NON_NEGATIVE,
+    'env.num_clutter': _NON_NEGATIVE,
     'env.max_distractors': _NON_NEGATIVE,
     'env.min_start_distance': _NON_NEGATIVE,
     'env.image_size': _AT_LEAST_1,

@@ -1,6 +1,8 @@
 """Scenes: shipped files load, meet their size targets, slots are geometrically valid (checked by
-ray casting in stock MuJoCo), rooms and slots are reachable, the generator is deterministic, and
-malformed or mis-annotated files raise SceneError naming the file and the problem. CPU, < 30 s."""
+ray casting in stock MuJoCo), rooms and slots are reachable, the generator is deterministic, sampled
+episodes are cluttered at the paper's scale (90-140 nodes when fully explored) with a unique goal,
+and malformed or mis-annotated files raise SceneError naming the file and the problem. CPU; the
+episode tests build each house's placement tables (geodesic fields) and compile its sampler."""
 
 from __future__ import annotations
 
@@ -274,6 +276,188 @@ def test_generator_is_deterministic_and_varied(tmp_path):
     p.write_text(a)
     s = load_scene(p)
     assert s.num_rooms >= 7 and s.num_furniture >= 15 and s.room_area().sum() >= 100
+
+
+# ---- episodes: clutter, goal uniqueness, scene scale (hron_jax.envs.placement) ------------------
+
+N_EPISODES = 32
+
+
+@functools.cache
+def tables(name):
+    """The scene's EpisodeTables with the default settings (what NavigationEnv builds)."""
+    from hron_jax.envs import placement as P
+    from hron_jax.sim import Simulator
+
+    return P.build_tables(scene(name), Simulator.from_file(os.path.join(SCENES, name)).mj_model)
+
+
+@functools.cache
+def exploratory_sampler(name):
+    import jax
+
+    from hron_jax.envs import placement as P
+
+    t = tables(name)
+    return jax.jit(jax.vmap(lambda k: P.sample_exploratory(k, t)))
+
+
+def exploratory_episodes(name, keys):
+    import jax
+
+    return jax.tree.map(np.asarray, exploratory_sampler(name)(keys))
+
+
+def _keys(seed, n=N_EPISODES):
+    import jax
+
+    return jax.random.split(jax.random.PRNGKey(seed), n)
+
+
+def _satisfies_goal(s, pl, goal):
+    """bool[O]: active pool objects whose (category, relation, furniture category, room category)
+    is the goal tuple (room -1: any), from the placement's furniture nodes (not the slot tables)."""
+    off = s.num_rooms + s.num_furniture
+    f = np.maximum(pl.furniture, 0)
+    return (
+        pl.active
+        & (pl.furniture >= 0)
+        & (s.vocab_index[off:] == goal[0])
+        & (pl.relation == goal[1])
+        & (s.vocab_index[f] == goal[2])
+        & ((goal[3] < 0) | (s.vocab_index[s.instance_room[f]] == goal[3]))
+    )
+
+
+def _check_clutter_episodes(name, eps):
+    """Per episode: 90-140 nodes once fully explored, one object per slot inside a usable slot
+    that fits it, exactly one object (the target) satisfying the goal tuple. Returns per episode
+    (confounders: active non-targets of the goal's category, near misses: those of them on the
+    goal's furniture category or in the goal's room)."""
+    s, t = scene(name), tables(name)
+    off = s.num_rooms + s.num_furniture
+    conf, near = [], []
+    for i in range(len(eps.goal)):
+        pl = type(eps.placement)(*(a[i] for a in eps.placement))
+        goal, target, slots = eps.goal[i], int(eps.target[i]), eps.slot[i]
+        active = np.nonzero(pl.active)[0]
+        assert 90 <= off + len(active) <= 140, (name, i, off + len(active))
+        assert len(set(slots[active].tolist())) == len(active) and np.all(slots[~pl.active] == -1)
+        cat = s.vocab_index[off + active]
+        assert np.all(t.slot_usable[slots[active], cat])
+        assert np.all(pl.furniture[active] == s.slot_furniture[slots[active]])
+        assert np.all(pl.relation[active] == s.slot_relation[slots[active]])
+        half = V.OBJECT_HALF[cat]
+        c, h = s.slot_center[slots[active]], s.slot_half[slots[active]]
+        assert np.all(np.abs(pl.pos[active, :2] - c[:, :2]) <= h[:, :2] - half[:, :2] + 1e-5)
+        np.testing.assert_allclose(pl.pos[active, 2], c[:, 2] - h[:, 2] + half[:, 2], atol=1e-5)
+        sat = _satisfies_goal(s, pl, goal)
+        assert np.nonzero(sat)[0].tolist() == [target], (name, i, goal, np.nonzero(sat)[0])
+        same = active[(cat == goal[0]) & (active != target)]
+        f = pl.furniture[same]
+        conf.append(len(same))
+        shared = (s.vocab_index[f] == goal[2]) | (s.vocab_index[s.instance_room[f]] == goal[3])
+        near.append(int(shared.sum()))
+    return np.array(conf), np.array(near)
+
+
+def test_house_episodes_are_cluttered_and_goals_unique():
+    """house.xml: every sampled exploratory episode has 90-140 nodes when fully explored (47 rooms
+    + furniture, the target and 64 clutter objects: 112), objects of every house category in all
+    three relations, exactly one object satisfying the goal tuple, and confounders: in at least
+    90% of the episodes (measured: all) other instances of the goal's category, in at least half
+    (measured: ~80%) one on the goal's furniture category or in the goal's room."""
+    import jax
+    import jax.numpy as jnp
+
+    from hron_jax.graph_builder import GraphBuilder
+
+    name = "house.xml"
+    s = scene(name)
+    eps = exploratory_episodes(name, _keys(0))
+    conf, near = _check_clutter_episodes(name, eps)
+    assert (conf >= 1).mean() >= 0.9 and (near >= 1).mean() >= 0.5, (conf, near)
+    off = s.num_rooms + s.num_furniture
+    for i in range(len(eps.goal)):
+        act = eps.placement.active[i]
+        assert set(s.vocab_index[off:][act].tolist()) == {V.OBJECTS.index(o) for o in V.HOUSE_OBJECTS}
+        assert set(eps.placement.relation[i][act].tolist()) == {V.ON_TOP, V.INSIDE, V.UNDER}
+    # The graph builder's fully explored graph (every node discovered) has exactly these nodes.
+    gb = GraphBuilder(s)
+    pl0 = jax.tree.map(lambda a: jnp.asarray(a[0]), eps.placement)
+    g = gb.graph(jnp.ones(gb.max_nodes, bool), pl0, jnp.asarray(eps.pose[0]))
+    assert int(g.nodes["mask"].sum()) == off + int(eps.placement.active[0].sum()) == 112
+    assert gb.max_nodes == s.num_nodes == 47 + 72
+
+
+@pytest.mark.parametrize("name", [f for f in HOUSES if f != "house.xml"])
+def test_generated_house_episodes_are_cluttered_and_goals_unique(name):
+    """The generated houses (26-31 pieces of furniture): 90-140 nodes too (measured 98-104)."""
+    eps = exploratory_episodes(name, _keys(1, 16))
+    conf, _ = _check_clutter_episodes(name, eps)
+    assert (conf >= 1).mean() >= 0.9, conf
+
+
+def test_episodes_are_deterministic_per_key():
+    import jax
+    import jax.numpy as jnp
+
+    keys = _keys(0)
+    a = exploratory_episodes("house.xml", keys)
+    half = N_EPISODES // 2
+    b = exploratory_episodes("house.xml", jnp.concatenate([keys[:half], keys[:half]]))
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(x[:half], y[:half])  # same key, same episode
+        np.testing.assert_array_equal(y[:half], y[half:])  # wherever it sits in the batch
+    assert not np.array_equal(a.placement.pos[:half], a.placement.pos[half:])
+
+
+def test_clutter_keeps_the_other_draws_of_a_key():
+    """Clutter draws from its own stream: goal, target and start of a key do not depend on it."""
+    import jax
+
+    from hron_jax.envs import placement as P
+
+    t = tables("house.xml")
+    keys = _keys(0)
+    bare = jax.tree.map(
+        np.asarray, jax.jit(jax.vmap(lambda k: P.sample_exploratory(k, t, num_clutter=0)))(keys)
+    )
+    full = exploratory_episodes("house.xml", keys)
+    assert np.all(bare.placement.active.sum(1) == 1) and np.all(full.placement.active.sum(1) == 65)
+    for f in ("goal", "target", "target_xy", "target_field", "pose"):
+        np.testing.assert_array_equal(getattr(bare, f), getattr(full, f))
+
+
+def test_directed_pairs_use_the_papers_objects():
+    """Directed task: pairs only for bowl, gym shoe and apple (all three present), no clutter by
+    default (the paper's symmetric room), and clutter on request keeps the goal unique."""
+    import jax
+
+    from hron_jax.envs import placement as P
+
+    name = "symmetric_room.xml"
+    s, t = scene(name), tables(name)
+    assert {V.OBJECTS[o] for o in t.pairs[:, 0]} == {"bowl", "gym_shoe", "apple"}
+    keys = _keys(0, 16)
+    both = jax.jit(jax.vmap(lambda k: (P.sample_directed(k, t), P.sample_directed(k, t, 2, num_clutter=8))))
+    bare, eps = jax.tree.map(np.asarray, both(keys))  # one compile for both
+    assert np.all(bare.placement.active.sum(1) == 2)
+    for i in range(len(keys)):
+        pl = type(eps.placement)(*(a[i] for a in eps.placement))
+        assert 2 + 2 + 1 <= pl.active.sum() <= 2 + 2 + 8
+        assert np.nonzero(_satisfies_goal(s, pl, eps.goal[i]))[0].tolist() == [int(eps.target[i])]
+        active = np.nonzero(pl.active)[0]
+        assert len(set(eps.slot[i][active].tolist())) == len(active)
+
+
+def test_stats_of_the_default_house():
+    from hron_jax.scenes.__main__ import scene_stats
+
+    st = scene_stats(os.path.join(SCENES, "house.xml"), tables=tables("house.xml"))
+    assert (st["rooms"], st["furniture"], st["pool"], st["slots"]) == (9, 38, 72, 117)
+    assert st["static_nodes"] == 47 and st["active_objects"] == 65 and st["explored_nodes"] == 112
+    assert st["max_nodes"] == 119 and st["same_category"] >= 1
 
 
 # ---- errors -----------------------------------------------------------------------------------

@@ -83,6 +83,10 @@ class NavConfig:
     shaping_scale: float = 1.0
     distractors: bool = False
     num_distractors: int = 6
+    # Exploratory: other objects of the vocabulary on, inside and under furniture all over the
+    # house (same-category ones never satisfy the goal), so a fully explored graph holds ~100
+    # nodes as in the paper's scenes (placement.sample_exploratory). The directed task has none.
+    num_clutter: int = P.DEFAULT_NUM_CLUTTER
     min_start_distance: float = 1.0  # exploratory: geodesic d0 of a start must exceed this (m)
     metric_map: bool = False
     premap: bool = False  # graph (and map) start with rooms + furniture discovered
@@ -192,7 +196,9 @@ class NavigationEnv:
         t = self.tables
         if self.config.task == 'directed':
             return P.sample_directed(key, t, self._num_distractors)
-        return P.sample_exploratory(key, t, self._num_distractors, self.config.min_start_distance)
+        return P.sample_exploratory(
+            key, t, self._num_distractors, self.config.min_start_distance, self.config.num_clutter
+        )
 
     def reset(self, rng) -> EnvState:
         k_ep, k_env = jax.random.split(rng)

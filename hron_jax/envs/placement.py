@@ -1,4 +1,4 @@
-"""Episode sampling for the navigation tasks: goals, stable object poses, distractors, agent starts.
+"""Episode sampling for the navigation tasks: goals, stable object poses, distractors, clutter, starts.
 
 Role
 ----
@@ -31,21 +31,46 @@ agents only start on main free cells.
 
 Samplers (one episode; jit / vmap them)
 ---------------------------------------
-`sample_exploratory(key, tables, num_distractors, min_start_distance)` -> Episode: a uniformly
-random satisfiable goal (object, relation, furniture, room) of the scene's goal table, a uniform
-slot realising it and a uniform usable point of that slot, a random pool instance of the object;
-start in a uniformly random room on a uniformly random main free cell of it whose geodesic distance
-to the success region exceeds `min_start_distance` (by rejection, see _start_cell), uniform yaw.
-`sample_directed(key, tables, num_distractors)` -> Episode: a random "pair" (object category, one
-slot on each half of the mirror plane x = centre of the scene's bounds, furniture of the same
-category, different relations); both halves get an instance of the object, the goal (object,
-relation, furniture, no room) names one of them at random, the other is the wrong object. Fixed
-start at `start:0`.
+`sample_exploratory(key, tables, num_distractors, min_start_distance, num_clutter)` -> Episode: a
+uniformly random satisfiable goal (object, relation, furniture, room) of the scene's goal table, a
+uniform slot realising it and a uniform usable point of that slot, a random pool instance of the
+object; start in a uniformly random room on a uniformly random main free cell of it whose geodesic
+distance to the success region exceeds `min_start_distance` (by rejection, see _start_cell),
+uniform yaw.
+`sample_directed(key, tables, num_distractors, num_clutter)` -> Episode: a random "pair" (object
+category of DIRECTED_OBJECTS, one slot on each half of the mirror plane x = centre of the scene's
+bounds, furniture of the same category, different relations); both halves get an instance of the
+object, the goal (object, relation, furniture, no room) names one of them at random, the other is
+the wrong object. Fixed start at `start:0`. The paper's directed task spawns a bowl, a gym shoe or
+an apple, so pairs are built for DIRECTED_OBJECTS only (build_tables' `directed_objects`).
 Distractors (num_distractors > 0): pool instances other than the target (and wrong object), the
 target's own category first, then random other categories, each in a random free slot (one object
-per slot, so objects never overlap) that fits it; an instance of the goal's category never goes
-into a slot that satisfies the goal tuple (same relation, furniture category and, when the goal has
-one, room category). Instances that find no slot stay parked (inactive).
+per slot, so objects never overlap) that fits it. Instances that find no slot stay parked
+(inactive).
+Clutter (num_clutter > 0; DEFAULT_NUM_CLUTTER = 64 for the exploratory task, 0 for the directed
+one, whose symmetric room is the paper's uncluttered set-up): the house's other objects, so that a
+fully explored graph has ~100 nodes with many objects like the paper's Wainscott_0_int graphs
+(where task-driven attention matters), not rooms + furniture + one target. After the target, wrong
+object and distractors, `num_clutter` more pool entries, a uniformly random subset of the free ones
+(the shipped houses' pools hold 9 of each of the 8 house objects, so every category, the goal's
+included, is drawn about equally often), go one per free usable slot that fits them, at a uniform
+usable candidate point, in every room and relation. The assignment is parallel over entries and
+slots: one round per pool category (the goal's first, then those with the fewest usable slots
+first), in which the r-th chosen entry of the category takes the r-th eligible slot in the
+episode's random slot order (prefix sums and scatters, no sort, no step per object: the sampler
+runs at every env step for the auto-reset). Clutter of the goal's category (about 7 an episode in
+the shipped houses) are the relational confounders: anywhere but in a slot satisfying the goal
+tuple, so for "apple on a table in the kitchen" there are apples inside kitchen cabinets, on tables
+of other rooms, under the kitchen table..., and the goal is resolved only by checking relation,
+furniture and room. Their slots are uniform among the free ones like every other clutter object's
+(preferring "near-miss" slots would make where the goal's category lies a cue to the goal).
+Entries that find no slot stay parked. The clutter's randomness comes from fold_in(key, 1), so a
+key's goal, target, distractors and start do not depend on num_clutter. A fully explored graph
+(rooms + furniture + active objects) of house.xml has 47 + 1 + 64 = 112 nodes, of the generated
+houses 98-104 (`python -m hron_jax.scenes --stats SCENE`).
+Goal uniqueness (both tasks, distractors and clutter alike): an instance of the goal's category
+never goes into a slot that satisfies the goal tuple (same relation, furniture category and, when
+the goal has one, room category), so exactly one active object satisfies it: the target.
 
 Episode fields (O = scene.num_objects pool entries in node order, pool entry j = node R + F + j):
     placement   graph_builder.Placement (active bool[O], pos f32[O,3], furniture i32[O] node,
@@ -73,6 +98,14 @@ from hron_jax.scenes import vocabulary as V
 from hron_jax.scenes.loader import Scene
 
 _NUM_OBJ = len(V.OBJECTS)
+
+# The paper's directed task spawns one of these (paper, "Experimental setup").
+DIRECTED_OBJECTS: tuple[str, ...] = ('bowl', 'gym_shoe', 'apple')
+# Clutter objects of an exploratory episode (see the module docstring): with the shipped houses'
+# 26-38 pieces of furniture in 7-9 rooms this gives 98-112 nodes when fully explored.
+DEFAULT_NUM_CLUTTER = 64
+# fold_in stream of the clutter's key, so the other draws of a key do not depend on num_clutter.
+_CLUTTER_STREAM = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,7 +159,8 @@ class EpisodeTables:
     goals: np.ndarray  # i32[Q, 4] the scene's goal table
     goal_ok: np.ndarray  # bool[Q] satisfiable (some slot usable for the goal's object)
     goal_slots: np.ndarray  # bool[Q, S] usable slots realising each goal
-    pairs: np.ndarray  # i32[P2, 3] directed pairs (object, left slot, right slot)
+    pairs: np.ndarray  # i32[P2, 3] directed pairs (object of directed_objects, left slot, right slot)
+    clutter_cats: np.ndarray  # i32[C] object categories in the pool, fewest usable slots first
     obj_cat: np.ndarray  # i32[O] object vocabulary index of each pool entry
     obj_half: np.ndarray  # f32[O, 3] half extents of each pool entry
     room_cell: np.ndarray  # i32[H*W] room of each reachable free cell, -1 elsewhere
@@ -216,12 +250,14 @@ def build_tables(
     success_distance: float = 1.0,
     agent_radius: float = 0.2,
     agent_height: float = 1.2,
+    directed_objects: tuple[str, ...] = DIRECTED_OBJECTS,
 ) -> EpisodeTables:
     """Host-side precomputation for one scene (see the module docstring).
 
     model: the compiled MuJoCo model the agent moves in (hron_jax.sim.Simulator.mj_model), whose
     collision bits define the obstacles; its occupancy grid is built at `config.cell_size`,
     inflated by agent_radius + config.clearance. success_distance: xy radius of the success region.
+    directed_objects: the object categories of the directed task's pairs (vocabulary names).
     """
     if config.field_dtype not in ('float16', 'float32'):
         raise ValueError(f"field_dtype must be 'float16' or 'float32', got {config.field_dtype!r}")
@@ -287,7 +323,7 @@ def build_tables(
     mid_x = 0.5 * (scene.bounds[0, 0] + scene.bounds[1, 0])
     side = np.sign(scene.aabb_center[furn, 0] - mid_x)
     pairs = []
-    for o in range(_NUM_OBJ):
+    for o in sorted(V.index('object', name) for name in directed_objects):
         if pool_count[o] < 2:
             continue
         for a in np.nonzero((side < 0) & slot_usable[:, o])[0]:
@@ -295,6 +331,9 @@ def build_tables(
                 if slot_furn_cat[a] == slot_furn_cat[b] and scene.slot_relation[a] != scene.slot_relation[b]:
                     pairs.append((o, a, b))
     pairs = np.array(pairs, np.int32).reshape(-1, 3)
+    # Clutter rounds: the pool's categories, those with the fewest usable slots first.
+    in_pool = np.nonzero(pool_count > 0)[0]
+    clutter_cats = in_pool[np.argsort(slot_usable[:, in_pool].sum(0), kind='stable')].astype(np.int32)
 
     centres = np.asarray(grid.centres()).reshape(-1, 2)
     rooms = scene.room_at(centres)
@@ -326,6 +365,7 @@ def build_tables(
         goal_ok=goal_ok,
         goal_slots=goal_slots,
         pairs=pairs,
+        clutter_cats=clutter_cats,
         obj_cat=obj_cat,
         obj_half=obj_half,
         room_cell=room_cell,
@@ -385,9 +425,10 @@ def _place(t: EpisodeTables, pl: Placement, slots, entry, slot, xy):
 
 
 def _distractors(key, t: EpisodeTables, pl: Placement, slots, used, goal, exclude, num: int):
-    """Place up to `num` distractors (see the module docstring); exclude bool[O] entries in use."""
+    """Place up to `num` distractors (see the module docstring); exclude bool[O] entries in use,
+    used bool[S] slots in use. Returns (placement, slots, used)."""
     if num <= 0:
-        return pl, slots
+        return pl, slots, used
     o_count = t.obj_cat.shape[0]
     num = min(num, o_count)
     k_order, k_place = jax.random.split(key)
@@ -416,8 +457,88 @@ def _distractors(key, t: EpisodeTables, pl: Placement, slots, used, goal, exclud
         return (pl, slots, used), None
 
     keys = jax.random.split(k_place, num)
-    (pl, slots, _), _ = jax.lax.scan(body, (pl, slots, used), (order, valid, keys))
-    return pl, slots
+    (pl, slots, used), _ = jax.lax.scan(body, (pl, slots, used), (order, valid, keys))
+    return pl, slots, used
+
+
+def _ranks(u):
+    """i32[n]: the rank of each entry of u f32[n] in ascending order, ties broken by index (a
+    permutation of 0..n-1); n^2 compares, much cheaper than a sort at these sizes on XLA:CPU."""
+    i = jnp.arange(u.shape[0])
+    less = (u[None, :] < u[:, None]) | ((u[None, :] == u[:, None]) & (i[None, :] < i[:, None]))
+    return less.sum(1).astype(jnp.int32)
+
+
+def _clutter(key, t: EpisodeTables, pl: Placement, slots, used, goal, num: int):
+    """Place up to `num` clutter objects (see the module docstring) among the pool entries that are
+    not active yet, one per free usable slot (used bool[S] marks the slots in use).
+
+    Parallel over entries and slots, and without sorts (XLA:CPU sorts cost ~1.5-4 ms per batch of
+    64 each, and this runs at every env step for the auto-reset): random orders are pairwise ranks
+    (_ranks). One round per object category (a lax.scan over clutter_cats), in which the r-th chosen
+    entry of the category takes the r-th eligible slot of the episode's random slot order (prefix
+    sums as matmuls and two scatters)."""
+    o_count, s_count = t.obj_cat.shape[0], t.slot_point.shape[0]
+    num = min(num, o_count)
+    if num <= 0:
+        return pl, slots
+    # One draw for everything (each threefry call adds compile time): entries, slot order, points.
+    u = jax.random.uniform(key, (2 * o_count + s_count,))
+    u_pick, u_order, u_pt = u[:o_count], u[o_count : o_count + s_count], u[o_count + s_count :]
+    cat = jnp.asarray(t.obj_cat)
+    # A uniformly random subset of `num` free entries (active ones rank last).
+    chosen = (_ranks(jnp.where(pl.active, 2.0, u_pick)) < num) & ~pl.active
+    # The episode's random slot order: slots are visited by rank, via ranked[j] = j-th slot.
+    rank = _ranks(u_order)
+    ranked = jnp.zeros((s_count,), jnp.int32).at[rank].set(jnp.arange(s_count, dtype=jnp.int32))
+    usable = jnp.asarray(t.slot_usable)[ranked]  # (S, NUM_OBJ), in that order
+    bad = _satisfies(t, goal)[ranked]
+    cats = jnp.asarray(t.clutter_cats)
+    # The goal's category first (the confounders never lack a slot), the others in the static order.
+    first = jnp.argmax(cats == goal[0])
+    i = jnp.arange(cats.shape[0])
+    cats = jnp.where(i == 0, cats[first], jnp.where(i <= first, jnp.roll(cats, 1), cats))
+    # Inclusive prefix sums as matmuls of 0/1 values (exact in f32, TF32 too; cheaper to compile
+    # than cumsum).
+    tri_o = jnp.asarray(np.tril(np.ones((o_count, o_count), np.float32)))
+    tri_s = jnp.asarray(np.tril(np.ones((s_count, s_count), np.float32)))
+
+    def round_(carry, c):
+        at, taken = carry  # at: position (in the order) of each entry's slot, -1 none; taken: by position
+        members = chosen & (cat == c)
+        r = (tri_o @ members.astype(jnp.float32)).astype(jnp.int32) - 1  # rank within the category
+        elig = usable[:, c] & ~taken & ~((c == goal[0]) & bad)
+        pos = (tri_s @ elig.astype(jnp.float32)).astype(jnp.int32) - 1  # rank among eligible slots
+        nth = (  # nth[k] = position of the k-th eligible slot
+            jnp.zeros((s_count,), jnp.int32)
+            .at[jnp.where(elig, pos, s_count)]
+            .set(jnp.arange(s_count, dtype=jnp.int32), mode='drop')
+        )
+        ok = members & (r < pos[-1] + 1)
+        at = jnp.where(ok, nth[jnp.clip(r, 0, s_count - 1)], at)
+        hit = jnp.zeros((s_count,), bool).at[jnp.where(ok, at, s_count)].set(True, mode='drop')
+        return (at, taken | hit), None
+
+    init = (jnp.full((o_count,), -1, jnp.int32), used[ranked])
+    (at, _), _ = jax.lax.scan(round_, init, cats)
+    slot_of = jnp.where(at >= 0, ranked[jnp.maximum(at, 0)], -1)
+    place = slot_of >= 0
+    slot_c = jnp.maximum(slot_of, 0)
+    # A uniform usable candidate point of each slot: the j-th True of slot_point_ok[slot].
+    ok_pts = jnp.asarray(t.slot_point_ok)[slot_c]  # (O, K)
+    n_ok = ok_pts.sum(-1)
+    j = jnp.minimum((u_pt * n_ok).astype(jnp.int32), n_ok - 1)
+    kk = jnp.argmax(ok_pts & (jnp.cumsum(ok_pts, -1) - 1 == j[:, None]), -1)
+    xy = jnp.asarray(t.point_xy)[jnp.asarray(t.slot_point)[slot_c, kk]]
+    z = jnp.asarray(t.slot_support)[slot_c] + jnp.asarray(t.obj_half)[:, 2]
+    pos = jnp.concatenate([xy, z[:, None]], -1)
+    pl = Placement(
+        active=pl.active | place,
+        pos=jnp.where(place[:, None], pos, pl.pos),
+        furniture=jnp.where(place, jnp.asarray(t.slot_furniture)[slot_c], pl.furniture),
+        relation=jnp.where(place, jnp.asarray(t.slot_relation)[slot_c], pl.relation),
+    )
+    return pl, jnp.where(place, slot_of, slots)
 
 
 def _empty(t: EpisodeTables):
@@ -445,9 +566,15 @@ def _start_cell(key, t: EpisodeTables, point, min_distance: float, tries: int = 
 
 
 def sample_exploratory(
-    key, t: EpisodeTables, num_distractors: int = 0, min_start_distance: float = 1.0
+    key,
+    t: EpisodeTables,
+    num_distractors: int = 0,
+    min_start_distance: float = 1.0,
+    num_clutter: int = DEFAULT_NUM_CLUTTER,
 ) -> Episode:
-    """One exploratory-task episode (module docstring). num_distractors is static."""
+    """One exploratory-task episode (module docstring). num_distractors and num_clutter are static.
+    The clutter draws from fold_in(key, _CLUTTER_STREAM): every other draw of a key (goal, target,
+    distractors, start) is the same for any num_clutter."""
     k_goal, k_slot, k_pt, k_inst, k_dis, k_room, k_yaw = jax.random.split(key, 7)
     q = _choice(k_goal, jnp.asarray(t.goal_ok))
     goal = jnp.asarray(t.goals)[q]
@@ -459,7 +586,8 @@ def sample_exploratory(
     pl, slots = _place(t, pl, slots, target, slot, xy)
     used = jnp.arange(t.slot_point.shape[0]) == slot
     exclude = jnp.arange(t.obj_cat.shape[0]) == target
-    pl, slots = _distractors(k_dis, t, pl, slots, used, goal, exclude, num_distractors)
+    pl, slots, used = _distractors(k_dis, t, pl, slots, used, goal, exclude, num_distractors)
+    pl, slots = _clutter(jax.random.fold_in(key, _CLUTTER_STREAM), t, pl, slots, used, goal, num_clutter)
 
     cell = _start_cell(k_room, t, p, min_start_distance)
     w = t.grid.free.shape[1]
@@ -479,8 +607,9 @@ def sample_exploratory(
     )
 
 
-def sample_directed(key, t: EpisodeTables, num_distractors: int = 0) -> Episode:
-    """One directed-task episode (module docstring). num_distractors is static."""
+def sample_directed(key, t: EpisodeTables, num_distractors: int = 0, num_clutter: int = 0) -> Episode:
+    """One directed-task episode (module docstring). num_distractors and num_clutter are static; the
+    default is the paper's set-up (no clutter in the symmetric room)."""
     if t.pairs.shape[0] == 0:
         raise ValueError(
             'this scene has no directed pairs (same furniture category on both halves '
@@ -510,7 +639,8 @@ def sample_directed(key, t: EpisodeTables, num_distractors: int = 0) -> Episode:
     s_idx = jnp.arange(t.slot_point.shape[0])
     used = (s_idx == slot_a) | (s_idx == slot_b)
     exclude = (jnp.arange(cat.shape[0]) == first) | (jnp.arange(cat.shape[0]) == second)
-    pl, slots = _distractors(k_dis, t, pl, slots, used, goal, exclude, num_distractors)
+    pl, slots, used = _distractors(k_dis, t, pl, slots, used, goal, exclude, num_distractors)
+    pl, slots = _clutter(jax.random.fold_in(key, _CLUTTER_STREAM), t, pl, slots, used, goal, num_clutter)
     return Episode(
         placement=pl,
         slot=slots,

@@ -15,6 +15,10 @@ dining tables, in front of the sofa for coffee tables, beside the bed for nights
 position that overlaps nothing, keeps door zones clear, and keeps every door and every placed piece
 reachable for a disc of radius 0.3 m (so walkways are at least 0.6 m wide). Pieces that do not fit
 are dropped.
+
+Objects: every house gets the same pool, POOL_PER_CATEGORY mocap bodies of each house object
+category, parked below the floor; episodes place the target and the clutter of the other objects
+(on, inside and under furniture) from it (hron_jax.envs.placement), so static shapes never change.
 """
 
 from __future__ import annotations
@@ -32,7 +36,10 @@ GAP = 0.02  # between furniture and walls / other furniture
 HALF_WALL = mjcf.WALL_THICKNESS / 2
 DOOR_CLEAR_DEPTH = 1.0
 ROUND = 0.01
-POOL_PER_CATEGORY = 3
+# Mocap bodies per house object category: the target, distractors and the exploratory task's
+# clutter (hron_jax.envs.placement.DEFAULT_NUM_CLUTTER = 64 per episode) come from this pool, so
+# 8 categories x 9 = 72 >= 1 + 64 + a few distractors, and every category can appear up to 9 times.
+POOL_PER_CATEGORY = 9
 
 # Pieces placed as near the middle of their wall as possible (others start in the corners).
 CENTRED = ("bed", "sofa", "tv_stand", "desk")
