@@ -2,6 +2,8 @@
 
 import importlib.util
 import json
+import os
+import re
 import sys
 from pathlib import Path
 
@@ -319,3 +321,111 @@ def test_a_run_of_other_settings_is_not_resumed_under_a_profile(R, tmp_path, mon
     monkeypatch.setattr(R, 'run_logged', lambda argv, log: pytest.fail(f'ran {argv}'))
     with pytest.raises(SystemExit, match=r"other settings than profile 'paper' \(.*preset"):
         R.run_cell_seed(cell, 0, runs, 'paper', 20)
+
+
+# ------------------------------------------------------------------------------------------------
+# End to end at the tiny profile: train + eval in process (run_cells_in_process), then the report
+# ------------------------------------------------------------------------------------------------
+
+# One navigation cell per table (the cheapest to compile: no graph branch in the model). Measured on
+# the 2 shared cores (load ~5): Table I ~30 s per cell (compile ~22 s + eval ~6 s), directed_rgbd
+# ~85 s, exploratory_rgbd ~155 s (the house scene compiles slowest); about half that when idle.
+NAV_CELLS = ('directed_rgbd', 'exploratory_rgbd')
+
+
+def report_row(text: str, table: int, label: str, cond: str) -> list[str]:
+    """The cells of a table's row in docs/reproduction.md (between its heading and the next)."""
+    section = text.split(f'## {TABLE_HEADS[table]}')[1].split('\n## ')[0]
+    row = next(l for l in section.splitlines() if l.startswith(f'| {cond} | {label} |'))
+    return [x.strip() for x in row.strip('|').split('|')]
+
+
+TABLE_HEADS = {1: 'Table I:', 2: 'Table II:', 3: 'Table III:'}
+
+
+def check_row_from_runs(R, text: str, runs: Path, cell, seeds: int = 2) -> None:
+    """The report row of `cell` holds the numbers of its run's eval.json (mean ± sample std over
+    the vmapped seeds, n), its seeds x episodes and env steps, read from the run dir."""
+    run = runs / cell.name / f's0x{seeds}'
+    ev = json.loads((run / 'eval_trained' / 'eval.json').read_text())
+    s = ev['summary']
+    assert s['seeds'] == seeds and len(s['success']['per_seed']) == seeds
+    cond = ('yes' if cell.distractors else 'no') if cell.table < 3 else ('yes' if cell.premap else 'no')
+    row = report_row(text, cell.table, cell.label, cond)
+    ours = row[3] if cell.table == 1 else row[4]
+    assert ours == R._ours(R.mean_std(s['success']['per_seed'])), (cell.name, row)
+    assert f'(n={seeds})' in ours
+    if cell.table > 1:
+        assert row[5] == R._ours(R.mean_std(s['spl']['per_seed'])), (cell.name, row)
+    rest = row[4:] if cell.table == 1 else row[6:]
+    steps = json.loads((run / 'metrics.jsonl').read_text().splitlines()[-1])['env_steps']
+    assert rest[0] == f'{seeds} x {s["episodes"]}' and rest[1] == f'{steps:,}' == '32'
+    assert all(re.fullmatch(r'[\d.]+ (s|min|h)', x) for x in rest[2:4]), rest  # train / process wall
+    assert 'PPO 4 envs x 4 steps, 1 epochs, minibatch 16' in rest[4]  # the tiny profile's, from config.json
+
+
+def test_tiny_profile_runs_table_1_and_a_navigation_cell_per_table_end_to_end(R, tmp_path, capsys):
+    """Table I completely and one cell each of Tables II and III, trained and evaluated in this
+    process at the tiny profile, then the report from the run dirs. The first call trains one of
+    the two updates of every Table I cell and stops (as a lease's time box does); the second
+    resumes them with the programs compiled by the first (hron_jax.training's in-process cache: no
+    program built, ~0 s compiling), finishes and evaluates them, and runs the navigation cells;
+    a third call finds everything done."""
+    runs, out = tmp_path / 'runs', tmp_path / 'docs' / 'reproduction.md'
+    table1 = [c for c in R.GRID if c.table == 1]
+    nav = [c for c in R.GRID if c.name in NAV_CELLS]
+    run = lambda cells, **kw: R.run_cells_in_process(cells, 'tiny', runs, compile_cache='none', **kw)
+
+    first = run(table1, max_updates=1)
+    assert [r['status'] for r in first] == ['stopped at 16 of 32; evaluated next time'] * 4
+    assert [r['programs_built'] for r in first] == [1] * 4  # no two cells of the grid share one
+    assert all(R.eval_json(runs / c.name / 's0x2') is None for c in table1)
+
+    second = run(table1 + nav)
+    assert [r['status'] for r in second] == ['evaluated'] * 6
+    for a, b in zip(first, second[:4]):  # resumed with the compiled program: nothing to compile
+        assert b['programs_built'] == 0 and b['compile_s'] < min(2.0, 0.1 * a['compile_s']), (a, b)
+        assert (b['steps_from'], b['env_steps']) == (16, 32)
+    assert [r['programs_built'] for r in second[4:]] == [1, 1]
+    for r in second:  # eval.py's protocol and files, in process
+        d = runs / r['cell'] / 's0x2'
+        assert {'eval.json', 'eval.md', 'trajectories.png'} <= {
+            p.name for p in (d / 'eval_trained').iterdir()
+        }
+        side = json.loads((d / 'repro.json').read_text())
+        assert side['runner'] == 'in-process' and side['profile'] == 'tiny' and side['eval_wall_s'] > 0
+    rows = capsys.readouterr().out
+    with capsys.disabled():  # the rows, for the record (pytest -s)
+        print('\n' + rows)
+
+    # Everything done: the CLI skips every cell and writes the report from the runs.
+    regex = '^(choice_.*|' + '|'.join(NAV_CELLS) + ')$'
+    argv = ['--profile', 'tiny', '--cells', regex, '--compile-cache', 'none']
+    assert R.main(argv + ['--runs', str(runs), '--out', str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count('done already') == 6 and 'built' not in printed
+    assert R.main(['--from-runs', '--runs', str(runs), '--out', str(out), '--seeds', '2']) == 0
+    text = out.read_text()
+    for cell in table1 + nav:
+        check_row_from_runs(R, text, runs, cell)
+    assert text.count('not yet run') >= 13  # the other cells, not invented
+
+
+@pytest.mark.skipif(
+    not os.environ.get('HRON_REPRO_TINY_ALL'),
+    reason='all of Tables I-III at the tiny profile (~30-60 min on 2 cores): set HRON_REPRO_TINY_ALL=1',
+)
+def test_tiny_profile_runs_all_tables_end_to_end(R, tmp_path):
+    """Every cell of Tables I-III (and the held-out houses of the exploratory main model) through
+    the CLI at the tiny profile, then the report: every row is filled from the runs."""
+    runs, out = tmp_path / 'runs', tmp_path / 'docs' / 'reproduction.md'
+    assert (
+        R.main(['--profile', 'tiny', '--compile-cache', 'none', '--runs', str(runs), '--out', str(out)]) == 0
+    )
+    text = out.read_text()
+    for cell in R.GRID:
+        check_row_from_runs(R, text, runs, cell)
+    assert 'not yet run' not in text.split('## Generalisation')[0]
+    main = runs / 'exploratory_rgbd_sg_attn' / 's0x2'
+    for scene in R.HELD_OUT:
+        assert (R.held_out_dir(main, scene) / 'eval.json').is_file()

@@ -18,6 +18,15 @@ persistent XLA cache makes seeds 1 and 2 skip compilation), and a single-seed ru
 construction identical to seed i of a multi-seed one (hron_jax.training). --from-runs reads any
 run dir layout it finds under RUNS/<cell>/ (a multi-seed run counts with all its seeds).
 
+In-process profiles ('gpu', 'tiny'; run_cells_in_process): one process trains every cell as ONE
+run RUNS/<cell>/s0x<seeds> with the seeds vmapped (`train.py --num-seeds N`; hron_jax.training
+caches compiled programs in-process per program-relevant config) and evaluates it with eval.py's
+code in the same process, printing compile / train / eval seconds per cell as it finishes;
+resumable (finished cells skipped, interrupted ones continue from their checkpoint), stoppable by
+--budget-s / --max-updates / SIGTERM. 'gpu' = `--preset paper --num-seeds 3` (--total-steps for a
+shorter budget; tools/gpu_tables.sh is the script of a lease); 'tiny' = the same code path at toy
+sizes, so the tables run end to end in a test on the CPU (tests/test_reproduce.py).
+
 Profiles: 'paper' = `train.py --preset paper` (hron_jax.run_config.PRESETS: the paper release's
 camera 128x128, per-relation HGT softmax and RLlib PPO, 8 envs x 512 steps, 30 epochs, minibatch
 128, lr 1e-4, KL penalty; HGT hidden 128, 2 heads, 3 layers) at the paper's budget (navigation
@@ -143,13 +152,46 @@ PROFILES = {
         'directed': ['--total-steps', '131072'],
         'exploratory': ['--total-steps', '32768'],
     },
+    # In-process profiles (IN_PROCESS): one run per cell with the seeds vmapped.
+    'gpu': {
+        task: ['--preset', 'paper', '--num-seeds', '3'] for task in ('choice', 'directed', 'exploratory')
+    },
 }
+# 'tiny': the paper preset's code path (per-relation HGT softmax, KL penalty, batch advantage
+# normalisation) at toy sizes, to run whole tables end to end on the CPU in a test: hidden 16,
+# 1 head, 1 GNN layer, FC widths 16, 8x8 camera, 8-step episodes, 2 PPO updates of 4 envs x 4
+# steps, 1 epoch, XLA without LLVM optimisation.
+_TINY = [
+    '--preset', 'paper', '--num-seeds', '2', '--fast-compile',
+    '--num-envs', '4', '--num-steps', '4', '--epochs', '1', '--minibatches', '1',
+    '--total-steps', '32', '--log-every', '1', '--checkpoint-every', '1000',
+] + [
+    x
+    for opt in (
+        'hidden=16', 'heads=1', 'gnn_layers=1', 'conv_features=8,8,8', 'cnn_fc=16,16,16',
+        'goal_fc=16,16,16', 'fusion_fc=16,16,16', 'head_fc=16,16', 'map_class_features=4',
+        'yang_image_code=8',
+    )
+    for x in ('--model-option', opt)
+]  # fmt: skip
+_TINY_NAV = [x for opt in ('image_size=8', 'max_steps=8', 'map.crop=16') for x in ('--env-option', opt)]
+PROFILES['tiny'] = {'choice': _TINY, 'directed': _TINY + _TINY_NAV, 'exploratory': _TINY + _TINY_NAV}
+# Profiles run by run_cells_in_process (train + eval in this process); the others by train.py /
+# eval.py subprocesses, one per seed (run_cell_seed).
+IN_PROCESS = ('gpu', 'tiny')
+# Eval episodes per seed where a profile differs from EPISODES.
+PROFILE_EPISODES = {'tiny': {'choice': 16, 'directed': 2, 'exploratory': 2}}
 PROFILE_TEXT = {
     'paper': "`train.py --preset paper`: the paper release's model, camera and PPO settings at the "
     "paper's budget (navigation 1.5 M env steps per seed; choice: the task default, the paper "
     'states none)',
     'cpu': "NOT the paper's settings: the task defaults (preset default) at a fraction of the "
     "paper's budget, sized for a session on the 2-core CPU",
+    'gpu': "`train.py --preset paper --num-seeds 3` in this process: one run per cell "
+    '(RUNS/<cell>/s0x3), the 3 seeds vmapped, compiled programs reused where the program is the same; '
+    'prints compile / train / eval seconds per cell (--total-steps: a shorter budget for a lease)',
+    'tiny': "NOT the paper's settings: the paper preset's code path at toy sizes and 2 updates, "
+    'in this process like gpu (an end-to-end smoke run of the tables on the CPU)',
 }
 # The paper's training budget where it states one ("approximately 1.5 million environment steps";
 # the results of Tables II and III); the choice task's budget is not stated.
@@ -470,6 +512,11 @@ def cell_runs(runs: Path, cell: Cell) -> list[Path]:
     return sorted(p for p in base.iterdir() if (p / 'config.json').is_file())
 
 
+def num_seeds_of(run_dir: Path) -> int:
+    """How many seeds a run dir trained (its config's num_seeds; vmapped in one run)."""
+    return int(json.loads((Path(run_dir) / 'config.json').read_text())['config'].get('num_seeds', 1))
+
+
 def steps_per_second(run_dirs: list[Path]) -> float | None:
     """Median env steps/s (all seeds of a run together) over the logged chunks; compile excluded."""
     rates = [r['steps_per_s'] for d in run_dirs for r in _rows(d) if r.get('steps_per_s')]
@@ -503,13 +550,15 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
             seeds.append((cfg.seed + i, sr, spl))
             run_seeds.append(cfg.seed + i)
         episodes.add(s['episodes'])
+        # Wall times per seed: a run of n vmapped seeds counts n times with its wall / n.
+        n = len(run_seeds)
         if rows:
             steps.append(rows[-1]['env_steps'])
-            train_wall.append(rows[-1]['wall_time'])
+            train_wall += [rows[-1]['wall_time'] / n] * n
         side = d / 'repro.json'
         if side.is_file():
             r = json.loads(side.read_text())
-            proc_wall.append(r.get('train_wall_s', np.nan) + r.get('eval_wall_s', 0.0))
+            proc_wall += [(r.get('train_wall_s', np.nan) + r.get('eval_wall_s', 0.0)) / n] * n
             if r.get('machine'):
                 machines.append(r['machine'])
             loads += r.get('loadavg_training') or (r.get('machine') or {}).get('loadavg', [])[:1]
@@ -746,6 +795,16 @@ def generalisation_section(runs: Path) -> list[str]:
     return out + ['']
 
 
+def seed0_dir(runs: Path, name: str) -> Path:
+    """The run dir holding seed 0 of a cell: s0, else an evaluated run of vmapped seeds s0x<n>
+    (whose seed index 0 is seed 0); s0 when neither exists."""
+    base = runs / name
+    for d in [base / 's0'] + sorted(base.glob('s0x*')):
+        if eval_json(d) is not None:
+            return d
+    return base / 's0'
+
+
 def attention_figures(runs: Path, figdir: Path, episodes: int = 8, max_steps: int = 300) -> None:
     """Figures and attention_summary.json of seed 0 of each of ATTENTION_CELLS (hron_jax.analysis,
     as the notebook draws them): `episodes` sampled episodes without and with distractors."""
@@ -755,7 +814,7 @@ def attention_figures(runs: Path, figdir: Path, episodes: int = 8, max_steps: in
     from hron_jax import analysis as A
 
     for name in ATTENTION_CELLS:
-        run_dir = runs / name / 's0'
+        run_dir = seed0_dir(runs, name)
         if eval_json(run_dir) is None:
             print(f'attention: {name} has no evaluated seed 0; skipped', flush=True)
             continue
@@ -807,7 +866,7 @@ def attention_section(runs: Path, figdir: Path, out_dir: Path) -> list[str]:
         '',
     ]
     for name in ATTENTION_CELLS:
-        side = runs / name / 's0' / 'attention_summary.json'
+        side = seed0_dir(runs, name) / 'attention_summary.json'
         if not side.is_file():
             continue
         a = json.loads(side.read_text())
@@ -905,10 +964,12 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
         f'{", ".join(m.get("devices", [])) or "?"}; 1-min load average during the runs '
         f'{load_txt} (the cores are shared with other jobs: at load ~7 the same program ran '
         '2.5x slower than at ~1, so wall times are upper bounds).',
-        f'- per cell: {seeds} seeds planned (separate `train.py` runs, seeds 0..{seeds - 1}; the '
-        '"Seeds x episodes" column says how many ran); the final '
-        f'checkpoint of each seed is evaluated with `eval.py RUN --episodes N` (same episode '
-        'starts / goals for every seed and model; actions sampled from the policy).',
+        f'- per cell: {seeds} seeds planned (seeds 0..{seeds - 1}: separate `train.py` runs '
+        'RUNS/<cell>/s<seed> with profiles cpu / paper, or one run RUNS/<cell>/s0x<seeds> with the '
+        'seeds vmapped, trained in one process with profiles gpu / tiny; the "Seeds x episodes" '
+        'column says how many ran); the final checkpoint of each seed is evaluated with `eval.py '
+        'RUN --episodes N` (or the same code in process: same episode starts / goals for every '
+        'seed and model; actions sampled from the policy).',
         '- SR / SPL: mean over all episodes of all seeds ± sample std (ddof=1) over seeds of the '
         'per-seed means, n = seeds beside it; one seed: no spread (the paper: "averaged over 20 '
         'episodes across three random seeds"; its ± are copied as printed).',
@@ -1025,6 +1086,8 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
         'python tools/reproduce.py --plan                 # grid, commands, cost estimates',
         "python tools/reproduce.py --tables 1 --profile cpu  # Table I as run here: not the paper's settings",
         'python tools/reproduce.py --tables 2 3 --profile paper   # train.py --preset paper (GPU advised)',
+        'python tools/reproduce.py --tables 2 --profile gpu  # same settings, 3 seeds vmapped, one process',
+        'bash tools/gpu_tables.sh 2 540 8192              # a time-boxed GPU lease (one prepared script)',
         'python tools/reproduce.py --attention            # attention figures of the trained main models',
         'python tools/reproduce.py --from-runs            # this report from existing runs',
         '```',
@@ -1143,6 +1206,263 @@ def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
     print(f'probe {cell.name}: {steps_per_second([out])} steps/s, process {wall:.0f} s', flush=True)
 
 
+# ------------------------------------------------------------------------------------------------
+# In-process runner (profiles gpu and tiny): one process trains and evaluates the cells
+# ------------------------------------------------------------------------------------------------
+
+# JAX's compile-time events (tracing, lowering to MLIR, XLA compilation): their durations are
+# summed by a listener, so the seconds a cell spent compiling are measured, not estimated.
+_COMPILE_EVENTS = (
+    '/jax/core/compile/jaxpr_trace_duration',
+    '/jax/core/compile/jaxpr_to_mlir_module_duration',
+    '/jax/core/compile/backend_compile_duration',
+)
+_compile_total = [0.0]
+_listening = [False]
+
+
+def compile_seconds() -> float:
+    """Seconds this process has spent tracing, lowering and compiling JAX programs so far."""
+    if not _listening[0]:
+        from jax import monitoring
+
+        def listen(name, secs, **_):
+            if name in _COMPILE_EVENTS:
+                _compile_total[0] += secs
+
+        monitoring.register_event_duration_secs_listener(listen)
+        _listening[0] = True
+    return _compile_total[0]
+
+
+def programs_built() -> int:
+    """Training programs built in this process so far (misses of hron_jax.training's cache)."""
+    from hron_jax import training
+
+    return training._programs.cache_info().misses
+
+
+def in_process_config(profile: str, cell: Cell, seeds: int | None = None, total_steps: int | None = None):
+    """The TrainConfig of a cell under an in-process profile (`seeds` / `total_steps` override the
+    profile's num_seeds / budget)."""
+    from hron_jax.cli import build_parser, config_from_args
+
+    args = build_parser().parse_args(in_process_argv(profile, cell, Path('run'), seeds, total_steps)[2:])
+    return config_from_args(vars(args))
+
+
+def in_process_argv(profile: str, cell: Cell, out: Path, seeds=None, total_steps=None) -> list[str]:
+    """The train.py command that trains what run_cells_in_process trains for a cell."""
+    base = profile_config(profile, cell)
+    extra = ['--num-seeds', str(seeds)] if seeds and seeds != base.num_seeds else []
+    extra += ['--total-steps', str(total_steps)] if total_steps else []
+    return train_argv(cell, 0, out, profile, extra=extra)
+
+
+def run_name(cfg) -> str:
+    """A run's dir name under RUNS/<cell>/: s<seed>, or s<seed>x<seeds> for vmapped seeds."""
+    return f's{cfg.seed}' + (f'x{cfg.num_seeds}' if cfg.num_seeds > 1 else '')
+
+
+def _log_to(path: Path):
+    def log(text: str) -> None:
+        with open(path, 'a') as f:
+            f.write(text + '\n')
+
+    return log
+
+
+def evaluate_in_process(run_dir: Path, episodes: int, log: Path, out: Path | None = None, extra=()) -> float:
+    """eval.py's main on a run in this process (the same protocol and files: eval.md, eval.json
+    with the per-seed summary, trajectories.png), its output to `log`; wall seconds."""
+    import contextlib
+
+    from hron_jax import evaluation
+
+    argv = eval_argv(run_dir, episodes, out, extra)[2:]
+    t = time.perf_counter()
+    with open(log, 'a') as f, contextlib.redirect_stdout(f), contextlib.redirect_stderr(f):
+        rc = evaluation.main(argv)
+    if rc:
+        raise SystemExit(f'eval.py {shlex.join(argv)} failed ({rc}) in process; see {log}')
+    return time.perf_counter() - t
+
+
+def _row_text(r: dict) -> str:
+    """One printed row of run_cells_in_process."""
+    if r['status'] in ('done already', 'not started'):
+        return f"{r['cell']:32s} {r['run']:6s} {r['status']}"
+    steps = f"{r['steps_from']:,}->{r['env_steps']:,}"
+    prog = 'reused' if not r['programs_built'] else 'built'
+    return (
+        f"{r['cell']:32s} {r['run']:6s} {steps:>20s} compile {r['compile_s']:7.1f} s ({prog}) "
+        f"train {r['train_s']:7.1f} s  eval {r['eval_s']:6.1f} s (compile {r['eval_compile_s']:5.1f}) "
+        f" {r['steps_per_s']:8.0f} env steps/s  {r['status']}"
+    )
+
+
+IN_PROCESS_HEAD = (
+    f"{'cell':32s} {'run':6s} {'env steps / seed':>20s} compile s (program)   train s (loop)  "
+    'eval s (incl. its compile)  steps/s (all seeds)  status'
+)
+
+
+def run_cells_in_process(
+    cells: list[Cell],
+    profile: str,
+    runs: Path,
+    *,
+    seeds: int | None = None,
+    episodes: int | None = None,
+    total_steps: int | None = None,
+    max_updates: int | None = None,
+    should_stop=None,
+    compile_cache: str | None = None,
+    plots: int | None = None,
+    print_row=lambda s: print(s, flush=True),
+) -> list[dict]:
+    """Train and evaluate `cells` in this process, one run per cell with the seeds vmapped
+    (RUNS/<cell>/s0x<seeds>), printing one row per cell as soon as it is done: compile seconds
+    (tracing + XLA of the training programs; ~0 when hron_jax.training's in-process cache had the
+    program), training-loop seconds, evaluation seconds (eval.py's protocol and files, its compile
+    included) and env steps/s. Returns the rows (dicts).
+
+    Resumable: a cell whose run has its budget and an eval.json is skipped; an interrupted one
+    (config.json and checkpoints) resumes from its last checkpoint; a run at a smaller budget is
+    extended and evaluated again. `max_updates`: at most that many PPO updates per cell in this
+    call; `should_stop()` (a signal, a deadline) is checked after every chunk of updates and between
+    cells: training checkpoints and the remaining cells wait for the next call."""
+    import absl.logging
+
+    from hron_jax.cli import setup_compile_cache
+    from hron_jax.run_config import RESUMABLE, config_diff
+    from hron_jax.run_dir import load_config
+    from hron_jax.training import Trainer
+
+    setup_compile_cache(compile_cache)
+    absl.logging.set_verbosity(absl.logging.ERROR)  # orbax's INFO lines
+    stop = should_stop or (lambda: False)
+    cache = ['--compile-cache', compile_cache] if compile_cache else []
+    plots = (1 if profile == 'tiny' else 4) if plots is None else plots
+    compile_seconds()  # start listening
+    rows = []
+    print_row(f'profile {profile}, runs {runs}')
+    print_row(IN_PROCESS_HEAD)
+    for cell in cells:
+        cfg = in_process_config(profile, cell, seeds, total_steps)
+        run_dir = runs / cell.name / run_name(cfg)
+        n_eps = episodes or PROFILE_EPISODES.get(profile, EPISODES)[cell.task]
+        row = dict(cell=cell.name, run=run_name(cfg), profile=profile, seeds=cfg.num_seeds)
+        budget = cfg.ppo.total_timesteps
+        exists = (run_dir / 'config.json').is_file()
+        if exists:
+            differ = [k for k in config_diff(load_config(run_dir), cfg) if k not in RESUMABLE]
+            if differ:
+                raise SystemExit(
+                    f'{run_dir} was trained with other settings than profile {profile!r} '
+                    f'({", ".join(differ)}); resuming it would mix them: use another --runs directory'
+                )
+        metric_rows = _rows(run_dir) if exists else []
+        trained = metric_rows[-1]['env_steps'] if metric_rows else 0
+        if trained >= budget and eval_json(run_dir) is not None:
+            rows.append(dict(row, status='done already', env_steps=trained))
+            print_row(_row_text(rows[-1]))
+            continue
+        if stop():
+            rows.append(dict(row, status='not started', env_steps=trained))
+            print_row(_row_text(rows[-1]))
+            continue
+        run_dir.parent.mkdir(parents=True, exist_ok=True)
+        side = run_dir / 'repro.json'
+        previous = json.loads(side.read_text()) if side.is_file() else {}
+        mach = machine()
+        c0, p0, t0 = compile_seconds(), programs_built(), time.perf_counter()
+        train_s = 0.0
+        if trained < budget:
+            resume = exists and (run_dir / 'checkpoints').is_dir()
+            if resume:  # interrupted, or shorter than the budget: continue; its evals are stale
+                for d in [run_dir / EVAL_DIR] + [held_out_dir(run_dir, s) for s in HELD_OUT]:
+                    shutil.rmtree(d, ignore_errors=True)
+            elif exists:  # config.json without a checkpoint: a run killed before its first save
+                shutil.rmtree(run_dir)
+            log = _log_to(run_dir.parent / f'{run_dir.name}.train.log')
+            trainer = Trainer(cfg, run_dir, resume=resume, progress=False, log=log)
+            wall0 = trainer.metrics.wall_time
+            try:
+                trainer.run(max_updates=max_updates, should_stop=stop)
+            finally:
+                trainer.close()
+            train_s = trainer.metrics.wall_time - wall0
+            trained = trainer.update * cfg.ppo.batch_size  # env steps per seed
+            del trainer  # its RunnerState (device memory) before the next cell's
+        compile_s = compile_seconds() - c0
+        train_wall = time.perf_counter() - t0
+        steps_from = metric_rows[-1]['env_steps'] if metric_rows else 0
+        row.update(
+            steps_from=steps_from,
+            env_steps=trained,
+            compile_s=compile_s,
+            train_s=train_s,
+            programs_built=programs_built() - p0,
+            steps_per_s=(trained - steps_from) * cfg.num_seeds / train_s if train_s > 0 else float('nan'),
+            eval_s=0.0,
+            eval_compile_s=0.0,
+        )
+        record = dict(
+            runner='in-process',
+            profile=profile,
+            machine=mach,
+            train_wall_s=train_wall + previous.get('train_wall_s', 0.0),
+            compile_s=compile_s + previous.get('compile_s', 0.0),
+            train_s=train_s + previous.get('train_s', 0.0),
+            loadavg_training=[mach.get('loadavg', [0.0])[0], os.getloadavg()[0]],
+        )
+        if trained < budget or stop():  # stopped (max_updates, a signal, the deadline)
+            write_json_file(side, record)
+            status = f'stopped at {trained:,} of {budget:,}' if trained < budget else 'trained'
+            rows.append(dict(row, status=status + '; evaluated next time'))
+            print_row(_row_text(rows[-1]))
+            continue
+        c1 = compile_seconds()
+        elog = run_dir.parent / f'{run_dir.name}.eval.log'
+        eval_s = evaluate_in_process(run_dir, n_eps, elog, extra=cache + ['--plots', str(plots)])
+        held = 0.0
+        if cell.task == 'exploratory' and cell.model in GENERALISATION_MODELS:
+            for scene in HELD_OUT:
+                held += evaluate_in_process(
+                    run_dir,
+                    n_eps,
+                    elog,
+                    held_out_dir(run_dir, scene),
+                    extra=cache + ['--plots', '0', '--scene', str(ROOT / scene)],
+                )
+        row.update(eval_s=eval_s + held, eval_compile_s=compile_seconds() - c1, status='evaluated')
+        record.update(
+            eval_wall_s=eval_s,
+            eval_compile_s=row['eval_compile_s'],
+            held_out_eval_s=held,
+            episodes=n_eps,
+            finished=time.strftime('%Y-%m-%d %H:%M:%S'),
+        )
+        write_json_file(side, record)
+        rows.append(row)
+        print_row(_row_text(row))
+    done = [r for r in rows if 'compile_s' in r]
+    if done:
+        print_row(
+            f'total: compile {sum(r["compile_s"] for r in done):.1f} s, train '
+            f'{sum(r["train_s"] for r in done):.1f} s, eval {sum(r["eval_s"] for r in done):.1f} s; '
+            f'{sum(r["programs_built"] for r in done)} training program(s) built for {len(done)} cell(s)'
+        )
+    return rows
+
+
+def write_json_file(path: Path, obj) -> None:
+    from hron_jax.run_dir import write_json
+
+    write_json(path, obj)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
@@ -1164,7 +1484,12 @@ def main(argv=None) -> int:
         default='cpu',
         help='; '.join(f'{k}: {v}' for k, v in PROFILE_TEXT.items()),
     )
-    p.add_argument('--seeds', type=int, default=3)
+    p.add_argument(
+        '--seeds',
+        type=int,
+        default=None,
+        help='seeds per cell (default 3; in-process profiles: their num_seeds, gpu 3, tiny 2)',
+    )
     p.add_argument(
         '--episodes',
         type=int,
@@ -1173,8 +1498,31 @@ def main(argv=None) -> int:
     )
     p.add_argument('--runs', default=str(ROOT / 'runs' / 'repro'))
     p.add_argument('--out', default=str(ROOT / 'docs' / 'reproduction.md'))
+    g = p.add_argument_group(f'in-process profiles ({", ".join(IN_PROCESS)})')
+    g.add_argument(
+        '--total-steps',
+        type=int,
+        help="env steps per seed instead of the profile's budget (e.g. a short GPU lease; a run "
+        'at a smaller budget is extended later)',
+    )
+    g.add_argument(
+        '--max-updates', type=int, help='at most this many PPO updates per cell in this call (then resume)'
+    )
+    g.add_argument(
+        '--budget-s',
+        type=float,
+        help='stop training (checkpointed) and leave the remaining cells after this many seconds',
+    )
+    g.add_argument(
+        '--compile-cache',
+        metavar='DIR',
+        help="persistent XLA cache (default as train.py; 'none' disables)",
+    )
     a = p.parse_args(argv)
     runs, out = Path(a.runs), Path(a.out)
+    in_process = a.profile in IN_PROCESS
+    if a.seeds is None:
+        a.seeds = profile_config(a.profile, _main_cell('choice')).num_seeds if in_process else 3
     cells = [c for c in GRID if c.table in a.tables and (not a.cells or re.search(a.cells, c.name))]
     if a.probe:
         by_name = {c.name: c for c in GRID}
@@ -1187,11 +1535,22 @@ def main(argv=None) -> int:
         print(f'profile {a.profile}: {PROFILE_TEXT[a.profile]}')
         total = 0.0
         for c in cells:
-            n_done = len([d for d in cell_runs(runs, c) if eval_json(d) is not None])
+            n_done = sum(num_seeds_of(d) for d in cell_runs(runs, c) if eval_json(d) is not None)
             prof = a.profile if PROFILES[a.profile][c.task] is not None else 'paper'
             est, sec = estimate(c, runs, a.seeds, prof)
             total += sec or 0.0
             print(f'[Table {c.table}] {c.name:34s} {n_done}/{a.seeds} seeds evaluated; {est}')
+            if in_process:  # one run, the seeds vmapped; this process runs what these commands do
+                cfg = in_process_config(prof, c, a.seeds, a.total_steps)
+                print(f'    settings ({prof}): {describe_config(cfg)}')
+                d = runs / c.name / run_name(cfg)
+                print(
+                    '    in process, as: '
+                    + shlex.join(in_process_argv(prof, c, d, a.seeds, a.total_steps))
+                    + ' && '
+                    + shlex.join(eval_argv(d, a.episodes or PROFILE_EPISODES.get(prof, EPISODES)[c.task]))
+                )
+                continue
             print(f'    settings ({prof}): {describe_config(profile_config(prof, c))}')
             for s in range(a.seeds):
                 d = runs / c.name / f's{s}'
@@ -1209,6 +1568,26 @@ def main(argv=None) -> int:
     if a.attention:
         attention_figures(runs, out.parent / 'reproduction')
         run_references(runs)
+    elif in_process and not a.from_runs:
+        from hron_jax.cli import GracefulStop, tune_malloc
+
+        tune_malloc()
+        deadline = time.monotonic() + a.budget_s if a.budget_s else None
+        with GracefulStop(lambda s: print(s, flush=True)) as signal_stop:
+            run_cells_in_process(
+                cells,
+                a.profile,
+                runs,
+                seeds=a.seeds,
+                episodes=a.episodes,
+                total_steps=a.total_steps,
+                max_updates=a.max_updates,
+                should_stop=lambda: signal_stop() or (deadline is not None and time.monotonic() > deadline),
+                compile_cache=a.compile_cache,
+            )
+        write_report(runs, out, a.seeds)
+        print(f'wrote {out}')
+        return 128 + signal_stop.signum if signal_stop.signum else 0
     elif not a.from_runs:
         for s in range(a.seeds):  # seed-major: every cell gets a first seed early
             for c in cells:
