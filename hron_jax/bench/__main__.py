@@ -6,10 +6,12 @@ import argparse
 import sys
 
 from . import __doc__ as _PACKAGE_DOC
-from . import conv, discovery, env, geodesic, graph, model, train
+from . import compile, conv, discovery, env, geodesic, graph, model, train
 from .common import machine_info, print_load
 
-SUBCOMMANDS = {m.__name__.rsplit(".", 1)[1]: m for m in (env, graph, model, train, conv, geodesic, discovery)}
+SUBCOMMANDS = {
+    m.__name__.rsplit(".", 1)[1]: m for m in (env, graph, model, train, compile, conv, geodesic, discovery)
+}
 
 
 def main(argv=None) -> None:
