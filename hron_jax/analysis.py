@@ -277,16 +277,21 @@ def collect(
 # ------------------------------------------------------------------------------------------------
 
 
+def _relation(rec: Record) -> np.ndarray:
+    """i32[B,T,M]: each edge's (edge type, sender type, receiver type) triple as an index of
+    graph_types.RELATION_TRIPLES, -1 where the triple is not an HGT relation."""
+    st = np.take_along_axis(rec.node_type, rec.senders, -1)
+    rt = np.take_along_axis(rec.node_type, rec.receivers, -1)
+    et = np.clip(rec.edge_type, 0, GT.NUM_EDGE_TYPES - 1)
+    return GT.RELATION_INDEX[et, np.clip(st, 0, 2), np.clip(rt, 0, 2)]
+
+
 def live_edges(rec: Record) -> np.ndarray:
     """bool[B,T,M]: edge live, both endpoints live, and a legal HGT relation (what gets attention)."""
     nm = rec.node_mask
     s_ok = np.take_along_axis(nm, rec.senders, -1)
     r_ok = np.take_along_axis(nm, rec.receivers, -1)
-    st = np.take_along_axis(rec.node_type, rec.senders, -1)
-    rt = np.take_along_axis(rec.node_type, rec.receivers, -1)
-    et = np.clip(rec.edge_type, 0, GT.NUM_EDGE_TYPES - 1)
-    legal = GT.RELATION_INDEX[et, np.clip(st, 0, 2), np.clip(rt, 0, 2)] >= 0
-    return rec.edge_mask & s_ok & r_ok & legal & rec.valid[..., None]
+    return rec.edge_mask & s_ok & r_ok & (_relation(rec) >= 0) & rec.valid[..., None]
 
 
 def _segment_sum(values, index, size):
@@ -308,12 +313,8 @@ def uniform_alpha(rec: Record) -> np.ndarray:
     n = rec.node_mask.shape[-1]
     group, size = rec.receivers, n
     if rec.hgt_softmax == 'per_relation':  # groups: (receiver, relation triple), as HGTConv's
-        st = np.take_along_axis(rec.node_type, rec.senders, -1)
-        rt = np.take_along_axis(rec.node_type, rec.receivers, -1)
-        et = np.clip(rec.edge_type, 0, GT.NUM_EDGE_TYPES - 1)
-        rel = np.maximum(GT.RELATION_INDEX[et, np.clip(st, 0, 2), np.clip(rt, 0, 2)], 0)
         k = GT.NUM_RELATIONS
-        group, size = rec.receivers * k + rel, n * k
+        group, size = rec.receivers * k + np.maximum(_relation(rec), 0), n * k
     indeg = _segment_sum(live.astype(np.float64), group, size)
     d = np.take_along_axis(indeg, group, -1)
     return np.where(live, 1.0 / np.maximum(d, 1.0), 0.0)

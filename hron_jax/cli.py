@@ -42,8 +42,8 @@ class ArgumentParser(argparse.ArgumentParser):
         self.exit(2, f'{self.prog}: error: {message} (see --help)\n')
 
 
-# CLI option (argparse dest) -> dotted run-config field. --env-option / --model-option NAME=VALUE
-# set 'env.NAME' / 'network.NAME'.
+# CLI option (argparse dest) -> dotted run-config field. --env-option / --model-option /
+# --ppo-option NAME=VALUE set 'env.NAME' / 'network.NAME' / 'ppo.NAME'.
 FIELDS = {
     'task': 'task',
     'model': 'model',
@@ -100,7 +100,7 @@ def config_from_args(args: dict, base: TrainConfig | None = None) -> TrainConfig
             for item in value or []:
                 name, sep, text = item.partition('=')
                 if not sep or not name:
-                    raise UsageError(f'{option_name(_OPTION_PREFIXES[dest])}{item!r}: expected NAME=VALUE')
+                    raise UsageError(f'--{dest.replace("_", "-")} {item!r}: expected NAME=VALUE')
                 overrides[_OPTION_PREFIXES[dest] + name] = text
         elif dest == 'scene':
             path = os.path.abspath(value)

@@ -27,7 +27,7 @@ def bench_compile(task: str, model: str, num_envs: int, extra: dict):
     import jax
 
     from ..cli import config_from_args
-    from ..training import programs, seed_keys
+    from ..training import programs
 
     jax.config.update("jax_enable_compilation_cache", False)
     config = config_from_args(dict(task=task, model=model, num_envs=num_envs, **extra))
@@ -57,7 +57,6 @@ def bench_compile(task: str, model: str, num_envs: int, extra: dict):
     for name, fn, args in stages:
         t = time.perf_counter()
         if fn is None:
-            prog.initialize(seed_keys(config))
             compiled = prog.chunk.lower(prog.abstract, 1).compile(options)
         else:
             compiled = fn.lower(*args).compile(options)
