@@ -22,6 +22,7 @@ from pathlib import Path
 
 from hron_jax.envs import TASKS
 from hron_jax.errors import CheckpointError, ConfigError, NonFiniteError, UsageError
+from hron_jax.multihost import init_distributed
 from hron_jax.run_config import (
     DEFAULT_MODEL,
     DEFAULT_TASK,
@@ -211,6 +212,19 @@ def build_parser(prog: str = 'train.py') -> argparse.ArgumentParser:
         help='persistent XLA compilation cache '
         "(default ~/.cache/hron_jax/xla or $JAX_COMPILATION_CACHE_DIR; 'none' disables)",
     )
+    d = p.add_argument_group(
+        'multi-host (jax.distributed: one train.py per host, the same options on each; the envs '
+        'shard over the devices of all hosts)'
+    )
+    d.add_argument('--coordinator', metavar='HOST:PORT', help="address of process 0's coordinator service")
+    d.add_argument('--num-processes', type=int, help='processes (hosts) in the job')
+    d.add_argument('--process-id', type=int, help='this process, 0 .. num-processes - 1')
+    d.add_argument(
+        '--distributed',
+        action='store_true',
+        help='detect the three options above from the cluster environment (SLURM, Open MPI, '
+        'Cloud TPU; see jax.distributed.initialize)',
+    )
     h = p.add_argument_group('PPO (defaults per task)')
     h.add_argument('--num-steps', type=int, help='rollout length per env per update')
     h.add_argument('--epochs', type=int, help='PPO epochs per update')
@@ -307,6 +321,8 @@ def main(argv=None, prog: str = 'train.py') -> int:
         return e.code
     log = lambda s: print(s, file=sys.stderr, flush=True)
     try:
+        if init_distributed(args) != 0:
+            log = lambda s: None  # process 0 reports for the job
         if (
             'resume' in args
             and 'out' in args
@@ -322,6 +338,10 @@ def main(argv=None, prog: str = 'train.py') -> int:
 
         absl.logging.set_verbosity(absl.logging.ERROR)  # orbax's INFO lines
         make_mesh(config.ppo.num_envs)  # device-count check before any build
+        import jax
+
+        if jax.process_count() > 1 and 'out' not in args and base is None:
+            raise UsageError('a multi-host run needs --out (the same shared directory on every host)')
         run_dir = (
             Path(args['resume']) if base is not None else Path(args.get('out') or default_run_dir(config))
         )

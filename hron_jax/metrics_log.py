@@ -70,21 +70,27 @@ def _nan_stats(v: np.ndarray):
 
 
 class MetricsLog:
-    """metrics.jsonl (source of truth), metrics.csv and TensorBoard, resumable at an update."""
+    """metrics.jsonl (source of truth), metrics.csv and TensorBoard, resumable at an update.
+    write=False keeps the rows in memory only (the other processes of a multi-host job)."""
 
-    def __init__(self, run_dir: Path, resume_update: int | None, tensorboard: bool = True):
+    def __init__(
+        self, run_dir: Path, resume_update: int | None, tensorboard: bool = True, write: bool = True
+    ):
         self.run_dir = Path(run_dir)
+        self.write = write
         self.jsonl = self.run_dir / 'metrics.jsonl'
         self.csv = self.run_dir / 'metrics.csv'
         self.rows: list[dict] = []
         if resume_update is not None:
             # Rows written after the checkpoint we resume from are replayed: drop them.
             self.rows = [r for r in read_metrics(run_dir) if r['update'] <= resume_update]
+        self.tb = None
+        if not write:
+            return
         with open(self.jsonl, 'w') as f:
             for row in self.rows:
                 f.write(json.dumps(row) + '\n')
         self._rewrite_csv()
-        self.tb = None
         if tensorboard:
             from tensorboardX import SummaryWriter
 
@@ -131,6 +137,8 @@ class MetricsLog:
         row['per_seed'] = {k: [_num(x) for x in v] for k, v in sorted(summary.items()) if k != 'env_steps'}
         new_cols = any(k not in self._columns() for k in row if k != 'per_seed')
         self.rows.append(row)
+        if not self.write:
+            return row
         with open(self.jsonl, 'a') as f:
             f.write(json.dumps(row) + '\n')
         if new_cols:

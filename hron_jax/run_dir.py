@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from hron_jax.errors import CheckpointError, UsageError
+from hron_jax.multihost import is_main, sync
 from hron_jax.run_config import TrainConfig
 
 
@@ -248,8 +249,10 @@ def restore_runner(run_dir, abstract, log: Callable[[str], None] = print):
             raise CheckpointError(
                 f'{damaged}; no older checkpoint to fall back to: start a new run with another --out'
             )
-        dest = _set_aside(run_dir, step)
-        log(f'{damaged}: moved it to {dest}; falling back to checkpoint {steps[-2]}')
+        if is_main():  # one process moves it; the others list the checkpoints after the barrier
+            dest = _set_aside(run_dir, step)
+            log(f'{damaged}: moved it to {dest}; falling back to checkpoint {steps[-2]}')
+        sync(f'hron_jax: checkpoint {step} set aside')
 
 
 def restore_params(run_dir, config: TrainConfig, env, network, step: int | None = None):

@@ -296,6 +296,48 @@ def test_sharded_run_matches_unsharded(reference, sharded_two_seeds):
     assert len(jax.tree.leaves(runner.env_state)[0].sharding.device_set) == 1
 
 
+def test_two_processes_train_like_one_with_two_devices(tmp_path, xla_cache, sharded_two_seeds):
+    """Multi-host: two train.py processes of one CPU device each, joined by jax.distributed on
+    localhost, train the program of `sharded_two_seeds` (2 devices, 2 seeds) to bitwise the same
+    parameters and metrics; only process 0 writes the logs."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(('localhost', 0))
+        port = s.getsockname()[1]
+    run_dir = tmp_path / 'two_hosts'
+    argv = tiny_argv(8) + ['--num-seeds', '2', '--out', str(run_dir)]
+    argv += ['--coordinator', f'localhost:{port}', '--num-processes', '2']
+    env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache, PYTHONPATH=str(ROOT))
+    env.pop('XLA_FLAGS', None)
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(ROOT / 'train.py')] + argv + ['--process-id', str(i)],
+            env=env,
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    errs = [p.communicate(timeout=240)[1] for p in procs]
+    for p, err in zip(procs, errs):
+        assert p.returncode == 0, err[-2000:]
+    assert 'done: 8 updates' in errs[0] and errs[1] == ''  # process 0 reports for the job
+    config = load_config(run_dir)
+    assert config == load_config(sharded_two_seeds)
+    abstract = programs(config).abstract
+    two_hosts, step = restore_runner(run_dir, abstract)
+    one_host, _ = restore_runner(sharded_two_seeds, abstract)
+    assert step == 8
+    assert_trees_equal(two_hosts.params, one_host.params)
+    assert_trees_equal(two_hosts.env_state, one_host.env_state)
+    rows, ref_rows = read_metrics(run_dir), read_metrics(sharded_two_seeds)
+    assert [r['update'] for r in rows] == [2, 4, 6, 8]  # written once, by process 0
+    assert [r['per_seed']['return'] for r in rows] == [r['per_seed']['return'] for r in ref_rows]
+
+
 # --- signals -----------------------------------------------------------------------------------
 def test_sigterm_checkpoints_and_resume_continues(tmp_path, xla_cache, sharded_two_seeds):
     # The program of `sharded_two_seeds` (2 devices, 2 seeds) again: it comes from the XLA cache.
@@ -353,11 +395,17 @@ BAD_CLI = [
     (['--task', 'navigate'], 1, "invalid choice: 'navigate'"),
     (['--task', 'choice', '--model', 'resnet'], 1, "invalid choice: 'resnet'"),
     (['--task', 'directed', '--scene', 'scenes/no_such_scene.xml'], 1, 'scene file not found'),
-    (['--task', 'choice', '--num-envs', '7'], 2, 'not divisible by the 2 local devices'),
+    (['--task', 'choice', '--num-envs', '7'], 2, 'not divisible by the 2 devices (cpu, this process)'),
     (
         ['--task', 'choice', '--num-envs', '6', '--num-steps', '1', '--minibatches', '4'],
         1,
         '--minibatches: must divide the rollout',
+    ),
+    (['--task', 'choice', '--coordinator', 'localhost:1'], 1, '--num-processes and --process-id go together'),
+    (
+        ['--task', 'choice', '--coordinator', 'localhost:1', '--num-processes', '2', '--process-id', '2'],
+        1,
+        '--process-id 2: must be in 0 .. 1',
     ),
 ]
 
