@@ -10,9 +10,14 @@ the same options (--task, --model, --num-envs, --preset, --fast-compile):
     fwd+grad     its gradient (what every PPO minibatch runs)
     chunk        the whole 1-update training chunk (hron_jax.training.programs: rollout scan, GAE,
                  epochs x minibatches scans), which contains all of the above
-
+    init         the init program (env reset + parameter init): train.py compiles it as well
+    init | chunk both again, fresh, as the Trainer does it: lowered one after the other, compiled
+                 side by side (Programs.start_compiles); the time until both are ready is what
+                 a run waits before its first update
 Prints: the Markdown table | stage | compile s | HLO text MB | as each stage is compiled (HLO text
-size: the optimised module's text, a proxy for how much XLA had to work through).
+size: the optimised module's text, a proxy for how much XLA had to work through). Compile seconds
+include tracing and lowering. With --by-source, then a second table: the chunk's HLO instructions
+per source module (`hlo_by_source`), i.e. which part of the code makes the program big.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ def bench_compile(task: str, model: str, num_envs: int, extra: dict):
     import jax
 
     from ..cli import config_from_args
-    from ..training import programs
+    from ..training import FAST_COMPILE, programs
 
     jax.config.update("jax_enable_compilation_cache", False)
     config = config_from_args(dict(task=task, model=model, num_envs=num_envs, **extra))
@@ -54,21 +59,83 @@ def bench_compile(task: str, model: str, num_envs: int, extra: dict):
         ("fwd+grad", jax.jit(jax.grad(loss)), (params, states.obs)),
         ("chunk (1 update)", None, None),
     ]
+    init_keys = jax.ShapeDtypeStruct((config.num_seeds, 2), "uint32")
+    stages.append(("init", prog.init, (init_keys,)))
     for name, fn, args in stages:
         t = time.perf_counter()
         if fn is None:
             compiled = prog.chunk.lower(prog.abstract, 1).compile(options)
-        else:
-            compiled = fn.lower(*args).compile(options)
+        else:  # init as the Trainer compiles it (Programs.start_compiles)
+            compiled = fn.lower(*args).compile(dict(FAST_COMPILE) if name == "init" else options)
         seconds = time.perf_counter() - t
-        yield dict(stage=name, compile_s=seconds, hlo_mb=len(compiled.as_text() or "") / 1e6)
+        text = compiled.as_text() or ""
+        yield dict(stage=name, compile_s=seconds, hlo_mb=len(text) / 1e6, text=text)
+    prog.compiled.clear()  # the Trainer's way, from scratch: no traces or executables kept
+    jax.clear_caches()
+    t = time.perf_counter()
+    prog.start_compiles([1], init=True)
+    for future in prog.compiled.values():
+        future.result()
+    yield dict(stage="init | chunk (overlapped)", compile_s=time.perf_counter() - t, hlo_mb=float("nan"))
+
+
+def hlo_by_source(text: str) -> dict[str, int]:
+    """Instructions of an optimised HLO module's text per source module: each instruction counts
+    for the innermost hron_jax file on its stack (metadata stack frames), 'via' the library whose
+    code emitted it when that is not ours (e.g. 'sim.py via mujoco'). Needs stacks deep enough to
+    reach our frames: run with jax_traceback_in_locations_limit raised (run() does)."""
+    import re
+
+    sections, current = {}, None
+    for line in text.splitlines():
+        if line in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
+            current = sections.setdefault(line, {})
+            continue
+        m = re.match(r"(\d+) (.*)", line) if current is not None else None
+        if m:
+            current[int(m.group(1))] = m.group(2)
+        else:
+            current = None
+    files = {k: v.strip('"') for k, v in sections.get("FileNames", {}).items()}
+    loc_file = {
+        k: files[int(re.search(r"file_name_id=(\d+)", v).group(1))]
+        for k, v in sections.get("FileLocations", {}).items()
+    }
+    frames = {}
+    for k, v in sections.get("StackFrames", {}).items():
+        loc, parent = (int(x) for x in re.findall(r"=(\d+)", v)[:2])
+        frames[k] = (loc, parent)
+
+    def key(frame: int) -> str:
+        inner, seen = None, set()
+        while frame in frames and frame not in seen:
+            seen.add(frame)
+            loc, parent = frames[frame]
+            path = loc_file[loc]
+            if inner is None:
+                inner = path
+            if "/hron_jax/" in path:
+                name = path.split("/hron_jax/", 1)[1]
+                if "/hron_jax/" not in inner:
+                    lib = inner.split("site-packages/", 1)[-1].split("/", 1)[0]
+                    name += f" via {lib}"
+                return name
+            frame = parent
+        return "(no hron_jax frame)"
+
+    counts: dict[str, int] = {}
+    for m in re.finditer(r"stack_frame_id=(\d+)", text):
+        k = key(int(m.group(1)))
+        counts[k] = counts.get(k, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: -kv[1]))
 
 
 HEADER = "| stage | compile s | HLO text MB |\n| --- | ---: | ---: |"
 
 
 def format_row(r: dict) -> str:
-    return f"| {r['stage']} | {r['compile_s']:.1f} | {r['hlo_mb']:.2f} |"
+    size = "-" if r["hlo_mb"] != r["hlo_mb"] else f"{r['hlo_mb']:.2f}"  # NaN: no single module
+    return f"| {r['stage']} | {r['compile_s']:.1f} | {size} |"
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
@@ -77,6 +144,9 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--num-envs", type=int, default=64)
     p.add_argument("--preset", default=None, help="a run_config preset, e.g. paper")
     p.add_argument("--fast-compile", action="store_true", help="XLA without LLVM optimisation")
+    p.add_argument(
+        "--by-source", action="store_true", help="then the chunk's HLO instructions per source module"
+    )
 
 
 def run(a: argparse.Namespace) -> None:
@@ -86,4 +156,16 @@ def run(a: argparse.Namespace) -> None:
     print(
         f"task {a.task}, model {a.model}, {a.num_envs} envs, cold compiles (no persistent cache)", flush=True
     )
-    stream_table(HEADER, bench_compile(a.task, a.model, a.num_envs, extra), format_row)
+    import jax
+
+    if a.by_source:  # stacks deep enough to reach hron_jax frames under MJX / flax / optax code
+        jax.config.update("jax_traceback_in_locations_limit", 64)
+    rows = stream_table(HEADER, bench_compile(a.task, a.model, a.num_envs, extra), format_row)
+    if a.by_source:
+        counts = hlo_by_source(next(r["text"] for r in rows if r["stage"].startswith("chunk")))
+        total = sum(counts.values())
+        print("\n| source (innermost hron_jax module) | HLO instructions of the chunk | share |")
+        print("| --- | ---: | ---: |")
+        for name, n in list(counts.items())[:15]:
+            print(f"| {name} | {n} | {100 * n / total:.1f} % |")
+        print(f"| all | {total} | 100 % |")
