@@ -247,13 +247,16 @@ def build_parser(prog: str = 'train.py') -> argparse.ArgumentParser:
 
 
 def tune_malloc() -> bool:
-    """Keep freed memory in the process (glibc): one arena, no mmap'd chunks, trim above 2 GiB.
+    """Keep freed memory in the process (glibc): two arenas, no mmap'd chunks, trim above 2 GiB.
 
     XLA:CPU takes every call's temporaries from malloc and glibc hands large blocks back to the
-    OS, so each call page-faults its working set again: measured 374 -> 270 ms per rgbd_sg_attn
-    fwd+grad at batch 64 on the 2-core VM (`python -m hron_jax.bench model`), the same as setting
-    MALLOC_ARENA_MAX=1 MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_ before start. Called by the
-    train / eval / bench entry points; returns False where there is no glibc (nothing changes).
+    OS, so each call page-faults its working set again. Measured on the 2-core VM
+    (rgbd_sg_attn fwd+grad at batch 64, `python -m hron_jax.bench model`): 490 ms untuned, 323 ms
+    with 1 or 2 arenas (mmap off and trim alone: 490; 4 arenas: 367). The arena count also
+    serialises XLA's parallel LLVM compile: cold compile of init + the main exploratory chunk
+    52-54 s untuned, 59 s with 2 arenas, 76-79 s with 1 (what this function set before). Called
+    by the train / eval / bench entry points; returns False where there is no glibc (nothing
+    changes).
     """
     import ctypes
 
@@ -263,7 +266,7 @@ def tune_malloc() -> bool:
     except (OSError, AttributeError):
         return False
     m_trim_threshold, m_mmap_max, m_arena_max = -1, -4, -8  # glibc malloc.h
-    return bool(mallopt(m_arena_max, 1) and mallopt(m_mmap_max, 0) and mallopt(m_trim_threshold, 2**31 - 1))
+    return bool(mallopt(m_arena_max, 2) and mallopt(m_mmap_max, 0) and mallopt(m_trim_threshold, 2**31 - 1))
 
 
 def setup_compile_cache(path: str | None) -> None:

@@ -36,7 +36,6 @@ import functools
 import sys
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -59,57 +58,25 @@ class Programs(NamedTuple):
     abstract: Any  # RunnerState of ShapeDtypeStruct with shardings
     shardings: Any  # RunnerState of NamedSharding
     compiler_options: dict  # XLA options of the chunks (FAST_COMPILE or none); init: FAST_COMPILE
-    compiled: dict  # 'init' / n -> Future of (AOT-compiled executable, compile seconds)
-
-    def start_compiles(self, chunk_sizes=(), init: bool = False) -> None:
-        """Lower init (if asked) and the given chunk lengths now and compile them in the background.
-
-        Lowering is Python (it holds the GIL); XLA's compile releases it, so the compiles of init
-        and of the chunk run at the same time as each other and as the lowering of the next
-        program. Measured on the 2-core VM (main exploratory config, 64 envs): init + 1-update
-        chunk ready after 47 s instead of 52 s one after the other; hosts with more cores overlap
-        more. Programs already started are not started again."""
-        import jax
-
-        if init:
-            keys = jax.ShapeDtypeStruct((self.abstract.rng.shape[0], 2), np.uint32)
-            self._start('init', lambda: self.init.lower(keys))
-        for n in chunk_sizes:
-            self._start(n, lambda n=n: self.chunk.lower(self.abstract, n))
-
-    def _start(self, key, lower: Callable) -> None:
-        if key not in self.compiled:
-            lowered = lower()
-            # init runs once per run, so it skips LLVM optimisation: its compile is mostly the
-            # threefry code of ~100 parameter initialisers and the episode sampler (70 % of its
-            # HLO). Measured (main exploratory config, 64 envs, 2-core VM): 11.6 -> 6.0 s compile,
-            # 0.28 -> 0.40 s run. Its float rounding differs (initial params within 3e-6), the
-            # same way on every run of a config.
-            options = dict(FAST_COMPILE) if key == 'init' else self.compiler_options
-            self.compiled[key] = _COMPILE_POOL.submit(_timed_compile, lowered, options)
+    compiled: dict  # 'init' / n -> AOT-compiled executable (shared by every Trainer)
 
     def initialize(self, keys):
-        """init(keys), compiled with compiler_options."""
-        self.start_compiles(init=True)
-        return self.compiled['init'].result()[0](keys)
+        """init(keys). init runs once per run, so it is compiled without LLVM optimisation: most
+        of it is the threefry code of ~100 parameter initialisers and the episode sampler (70 %
+        of its HLO). Measured (main exploratory config, 64 envs, 2-core VM): compile 11.6 ->
+        6.0 s, run 0.28 -> 0.40 s; its float rounding differs (initial params within 3e-6), the
+        same way on every run of a config."""
+        if 'init' not in self.compiled:
+            self.compiled['init'] = self.init.lower(keys).compile(dict(FAST_COMPILE))
+        return self.compiled['init'](keys)
 
     def compiled_chunk(self, n: int):
-        """(executable runner -> (runner, metrics), seconds its compile took; 0 if an earlier
-        call already returned it)."""
-        fresh = n not in self.compiled or not self.compiled[n].done()
-        self.start_compiles([n])
-        executable, seconds = self.compiled[n].result()
-        return executable, seconds if fresh else 0.0
-
-
-def _timed_compile(lowered, options):
-    t = time.perf_counter()
-    executable = lowered.compile(options)
-    return executable, time.perf_counter() - t
-
-
-# Two workers: init and the first chunk length compile side by side (see start_compiles).
-_COMPILE_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix='xla-compile')
+        """(executable runner -> (runner, metrics), seconds spent compiling it now)."""
+        if n in self.compiled:
+            return self.compiled[n], 0.0
+        t = time.perf_counter()
+        self.compiled[n] = self.chunk.lower(self.abstract, n).compile(self.compiler_options)
+        return self.compiled[n], time.perf_counter() - t
 
 
 # XLA:CPU options of --fast-compile: no LLVM optimisation. Measured on the choice task: compiles
@@ -281,14 +248,9 @@ class Trainer:
         sync('hron_jax: run dir checked')  # by every process, before anyone writes to it
         self.programs = programs(config)
         t = time.perf_counter()
-        if not resume:  # the first chunk compiles while init compiles and runs
-            self.programs.start_compiles([min(config.log_every, config.num_updates)], init=True)
         if resume:
             self.runner, step = restore_runner(self.run_dir, self.programs.abstract, log=self._log)
             self._log(f'resumed {self.run_dir} at update {step} / {config.num_updates}')
-            if step < config.num_updates:
-                first = min(config.log_every - step % config.log_every, config.num_updates - step)
-                self.programs.start_compiles([first])
             if self.is_main:
                 save_config(self.run_dir, config)  # RESUMABLE fields may have changed
         else:

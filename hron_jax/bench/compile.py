@@ -10,10 +10,8 @@ the same options (--task, --model, --num-envs, --preset, --fast-compile):
     fwd+grad     its gradient (what every PPO minibatch runs)
     chunk        the whole 1-update training chunk (hron_jax.training.programs: rollout scan, GAE,
                  epochs x minibatches scans), which contains all of the above
-    init         the init program (env reset + parameter init): train.py compiles it as well
-    init | chunk both again, fresh, as the Trainer does it: lowered one after the other, compiled
-                 side by side (Programs.start_compiles); the time until both are ready is what
-                 a run waits before its first update
+    init         the init program (env reset + parameter init) as train.py compiles it (without
+                 LLVM optimisation, Programs.initialize); a run waits for init + chunk
 Prints: the Markdown table | stage | compile s | HLO text MB | as each stage is compiled (HLO text
 size: the optimised module's text, a proxy for how much XLA had to work through). Compile seconds
 include tracing and lowering. With --by-source, then a second table: the chunk's HLO instructions
@@ -65,18 +63,10 @@ def bench_compile(task: str, model: str, num_envs: int, extra: dict):
         t = time.perf_counter()
         if fn is None:
             compiled = prog.chunk.lower(prog.abstract, 1).compile(options)
-        else:  # init as the Trainer compiles it (Programs.start_compiles)
+        else:  # init as the Trainer compiles it (Programs.initialize)
             compiled = fn.lower(*args).compile(dict(FAST_COMPILE) if name == "init" else options)
         seconds = time.perf_counter() - t
-        text = compiled.as_text() or ""
-        yield dict(stage=name, compile_s=seconds, hlo_mb=len(text) / 1e6, text=text)
-    prog.compiled.clear()  # the Trainer's way, from scratch: no traces or executables kept
-    jax.clear_caches()
-    t = time.perf_counter()
-    prog.start_compiles([1], init=True)
-    for future in prog.compiled.values():
-        future.result()
-    yield dict(stage="init | chunk (overlapped)", compile_s=time.perf_counter() - t, hlo_mb=float("nan"))
+        yield dict(stage=name, compile_s=seconds, hlo_mb=len(compiled.as_text() or "") / 1e6)
 
 
 def hlo_by_source(text: str) -> dict[str, int]:
@@ -158,11 +148,18 @@ def run(a: argparse.Namespace) -> None:
     )
     import jax
 
-    if a.by_source:  # stacks deep enough to reach hron_jax frames under MJX / flax / optax code
-        jax.config.update("jax_traceback_in_locations_limit", 64)
-    rows = stream_table(HEADER, bench_compile(a.task, a.model, a.num_envs, extra), format_row)
+    stream_table(HEADER, bench_compile(a.task, a.model, a.num_envs, extra), format_row)
     if a.by_source:
-        counts = hlo_by_source(next(r["text"] for r in rows if r["stage"].startswith("chunk")))
+        # Stacks deep enough to reach hron_jax frames under MJX / flax / optax code make bigger
+        # modules that compile slower, so the chunk is compiled once more for this table only.
+        from ..cli import config_from_args
+        from ..training import programs
+
+        jax.config.update("jax_traceback_in_locations_limit", 64)
+        jax.clear_caches()
+        prog = programs(config_from_args(dict(task=a.task, model=a.model, num_envs=a.num_envs, **extra)))
+        text = prog.chunk.lower(prog.abstract, 1).compile(prog.compiler_options).as_text() or ""
+        counts = hlo_by_source(text)
         total = sum(counts.values())
         print("\n| source (innermost hron_jax module) | HLO instructions of the chunk | share |")
         print("| --- | ---: | ---: |")
