@@ -121,19 +121,37 @@ def xla_cache(tmp_path_factory):
     return str(tmp_path_factory.mktemp('xla_cache'))
 
 
-def run_cli(script, argv, xla_cache, devices=1, **kw):
+def cli_env(xla_cache, devices=1) -> dict:
+    """Environment of an entry-point subprocess: CPU JAX with `devices` host devices, the module's
+    XLA cache, this checkout on the path."""
     env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache, PYTHONPATH=str(ROOT))
     env.pop('XLA_FLAGS', None)
     if devices > 1:
         env['XLA_FLAGS'] = f'--xla_force_host_platform_device_count={devices}'
+    return env
+
+
+def run_cli(script, argv, xla_cache, devices=1, **kw):
     return subprocess.run(
         [sys.executable, str(ROOT / script)] + argv,
-        env=env,
+        env=cli_env(xla_cache, devices),
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=240,
         **kw,
+    )
+
+
+def start_train(argv, xla_cache, devices=1) -> subprocess.Popen:
+    """train.py in a background subprocess (stdout / stderr piped as text)."""
+    return subprocess.Popen(
+        [sys.executable, str(ROOT / 'train.py')] + argv,
+        env=cli_env(xla_cache, devices),
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
 
 
@@ -308,19 +326,7 @@ def test_two_processes_train_like_one_with_two_devices(tmp_path, xla_cache, shar
     run_dir = tmp_path / 'two_hosts'
     argv = tiny_argv(8) + ['--num-seeds', '2', '--out', str(run_dir)]
     argv += ['--coordinator', f'localhost:{port}', '--num-processes', '2']
-    env = dict(os.environ, JAX_PLATFORMS='cpu', JAX_COMPILATION_CACHE_DIR=xla_cache, PYTHONPATH=str(ROOT))
-    env.pop('XLA_FLAGS', None)
-    procs = [
-        subprocess.Popen(
-            [sys.executable, str(ROOT / 'train.py')] + argv + ['--process-id', str(i)],
-            env=env,
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for i in range(2)
-    ]
+    procs = [start_train(argv + ['--process-id', str(i)], xla_cache) for i in range(2)]
     errs = [p.communicate(timeout=240)[1] for p in procs]
     for p, err in zip(procs, errs):
         assert p.returncode == 0, err[-2000:]
@@ -344,21 +350,7 @@ def test_sigterm_checkpoints_and_resume_continues(tmp_path, xla_cache, sharded_t
     updates = 150  # ~2 s of training on an idle machine: time to send the signal mid-run
     run_dir = tmp_path / 'sig'
     argv = tiny_argv(updates) + ['--num-seeds', '2', '--checkpoint-every', '1000']  # ckpt: init, exit
-    env = dict(
-        os.environ,
-        JAX_PLATFORMS='cpu',
-        JAX_COMPILATION_CACHE_DIR=xla_cache,
-        PYTHONPATH=str(ROOT),
-        XLA_FLAGS='--xla_force_host_platform_device_count=2',
-    )
-    popen = lambda out: subprocess.Popen(
-        [sys.executable, str(ROOT / 'train.py')] + argv + ['--out', str(out)],
-        env=env,
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    popen = lambda out: start_train(argv + ['--out', str(out)], xla_cache, devices=2)
     proc = popen(run_dir)
     full = popen(tmp_path / 'uninterrupted')  # the reference, meanwhile
     deadline = time.time() + 200
@@ -411,25 +403,10 @@ BAD_CLI = [
 
 
 def test_bad_cli_input_is_one_clear_line(tmp_path, xla_cache):
-    procs = []
-    for i, (argv, devices, _) in enumerate(BAD_CLI):  # all at once: each is mostly imports
-        env = dict(
-            os.environ,
-            JAX_PLATFORMS='cpu',
-            JAX_COMPILATION_CACHE_DIR=xla_cache,
-            PYTHONPATH=str(ROOT),
-            XLA_FLAGS=f'--xla_force_host_platform_device_count={devices}',
-        )
-        procs.append(
-            subprocess.Popen(
-                [sys.executable, str(ROOT / 'train.py')] + argv + ['--out', str(tmp_path / f'never{i}')],
-                env=env,
-                cwd=ROOT,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                text=True,
-            )
-        )
+    procs = [  # all at once: each is mostly imports
+        start_train(argv + ['--out', str(tmp_path / f'never{i}')], xla_cache, devices)
+        for i, (argv, devices, _) in enumerate(BAD_CLI)
+    ]
     for i, ((argv, _, needle), proc) in enumerate(zip(BAD_CLI, procs)):
         _, err = proc.communicate(timeout=120)
         err = err.strip()

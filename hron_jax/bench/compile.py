@@ -26,14 +26,14 @@ import time
 from .common import stream_table
 
 
-def bench_compile(task: str, model: str, num_envs: int, extra: dict):
+def bench_compile(config):
+    """Yields {stage, compile_s, hlo_mb} per stage of the training program of `config`."""
     import jax
 
-    from ..cli import config_from_args
     from ..training import FAST_COMPILE, programs
 
     jax.config.update("jax_enable_compilation_cache", False)
-    config = config_from_args(dict(task=task, model=model, num_envs=num_envs, **extra))
+    num_envs = config.ppo.num_envs
     prog = programs(config)
     options = prog.compiler_options
     env, network = prog.env, prog.network
@@ -124,8 +124,7 @@ HEADER = "| stage | compile s | HLO text MB |\n| --- | ---: | ---: |"
 
 
 def format_row(r: dict) -> str:
-    size = "-" if r["hlo_mb"] != r["hlo_mb"] else f"{r['hlo_mb']:.2f}"  # NaN: no single module
-    return f"| {r['stage']} | {r['compile_s']:.1f} | {size} |"
+    return f"| {r['stage']} | {r['compile_s']:.1f} | {r['hlo_mb']:.2f} |"
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
@@ -140,24 +139,26 @@ def add_args(p: argparse.ArgumentParser) -> None:
 
 
 def run(a: argparse.Namespace) -> None:
+    from ..cli import config_from_args
+
     extra = {"fast_compile": True} if a.fast_compile else {}
     if a.preset:
         extra["preset"] = a.preset
+    config = config_from_args(dict(task=a.task, model=a.model, num_envs=a.num_envs, **extra))
     print(
         f"task {a.task}, model {a.model}, {a.num_envs} envs, cold compiles (no persistent cache)", flush=True
     )
-    import jax
-
-    stream_table(HEADER, bench_compile(a.task, a.model, a.num_envs, extra), format_row)
+    stream_table(HEADER, bench_compile(config), format_row)
     if a.by_source:
         # Stacks deep enough to reach hron_jax frames under MJX / flax / optax code make bigger
         # modules that compile slower, so the chunk is compiled once more for this table only.
-        from ..cli import config_from_args
+        import jax
+
         from ..training import programs
 
         jax.config.update("jax_traceback_in_locations_limit", 64)
         jax.clear_caches()
-        prog = programs(config_from_args(dict(task=a.task, model=a.model, num_envs=a.num_envs, **extra)))
+        prog = programs(config)
         text = prog.chunk.lower(prog.abstract, 1).compile(prog.compiler_options).as_text() or ""
         counts = hlo_by_source(text)
         total = sum(counts.values())
