@@ -246,6 +246,20 @@ def build_parser(prog: str = 'train.py') -> argparse.ArgumentParser:
     return p
 
 
+def computes_on_gpu() -> bool:
+    """Whether JAX will compute on a GPU here, decided without starting its backends (a multi-host
+    run must call jax.distributed.initialize first): the first of $JAX_PLATFORMS, else whether a
+    CUDA / ROCm plugin of JAX is installed (what `pip install -e ".[cuda]"` adds)."""
+    import importlib.metadata
+    import os
+
+    platforms = os.environ.get('JAX_PLATFORMS', '').strip()
+    if platforms:
+        return platforms.split(',')[0].strip() in ('cuda', 'gpu', 'rocm')
+    plugins = importlib.metadata.entry_points(group='jax_plugins')
+    return any(gpu in f'{ep.name} {ep.value}' for ep in plugins for gpu in ('cuda', 'rocm'))
+
+
 def tune_malloc() -> bool:
     """Keep freed memory in the process (glibc): two arenas, no mmap'd chunks, trim above 2 GiB.
 
@@ -255,11 +269,14 @@ def tune_malloc() -> bool:
     with 1 or 2 arenas (mmap off and trim alone: 490; 4 arenas: 367). The arena count also
     serialises XLA's parallel LLVM compile: cold compile of init + the main exploratory chunk
     52-54 s untuned, 59 s with 2 arenas, 76-79 s with 1 (what this function set before). Called
-    by the train / eval / bench entry points; returns False where there is no glibc (nothing
-    changes).
+    by the train / eval / bench entry points; returns False where nothing changes: no glibc, or
+    JAX computes on a GPU (`computes_on_gpu`), where XLA takes no per-call memory from malloc and
+    the arena limit would only serialise the compiler's threads.
     """
     import ctypes
 
+    if computes_on_gpu():
+        return False
     try:
         libc = ctypes.CDLL('libc.so.6')
         mallopt = libc.mallopt

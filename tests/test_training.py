@@ -729,10 +729,14 @@ def test_eval_rejects_bad_env_options_with_a_run(reference, argv, needle, capsys
     assert err.startswith('eval.py: error:') and needle in err and len(err.splitlines()) == 1
 
 
-def test_tune_malloc_applies_on_glibc():
-    # Its speed effect is measured by `python -m hron_jax.bench model` (README); here: it applies.
+def test_tune_malloc_applies_on_glibc_cpu_only(monkeypatch):
+    # Its speed effect is measured by `python -m hron_jax.bench model` (README); here: it applies
+    # where JAX computes on the CPU, and not where a GPU would run the program.
     import platform
 
     if platform.libc_ver()[0] != 'glibc':
         pytest.skip('not a glibc system')
+    monkeypatch.setenv('JAX_PLATFORMS', 'cuda')
+    assert tune_malloc() is False
+    monkeypatch.setenv('JAX_PLATFORMS', 'cpu')
     assert tune_malloc() is True

@@ -34,39 +34,12 @@ RUNS=${RUNS:-runs/repro_gpu}
 OUT=${OUT:-/tmp/gpu_tables_out}
 REPORT_DIR=$RUNS/_report
 mkdir -p "$OUT" "$RUNS"
-export PYTHONUNBUFFERED=1
-
-left() { echo $((SECONDS_BOX - SECONDS)); }
-
-# step SECONDS CMD...: run CMD time-boxed (TERM, then KILL 10 s later), print its rc.
-step() {
-  local box=$1
-  shift
-  if ((box < 5)); then
-    echo "== skipped (no time left): $*"
-    return 124
-  fi
-  echo "== [$(date +%T), ${SECONDS}s] (time box ${box}s) $*"
-  timeout -k 10 -s TERM "$box" "$@"
-  local rc=$?
-  echo "== rc $rc after ${SECONDS}s"
-  return $rc
-}
+# shellcheck source=tools/gpu_lib.sh
+source tools/gpu_lib.sh
 
 main() {
-  # 1. The wheels the GPU machine lacks (carried in .whl/ by fetch-wheels.sh; absent on a dev machine).
-  if compgen -G '.whl/*.whl' >/dev/null; then
-    step 120 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-      --target /tmp/site .whl/*.whl || return 1
-    export PYTHONPATH=/tmp/site:$PWD
-  fi
-  # 2. What this machine is.
-  {
-    step 60 python3 -c 'import jax, flax, optax, numpy, mujoco; print("jax", jax.__version__, jax.devices(), "flax",
-flax.__version__, "optax", optax.__version__, "numpy", numpy.__version__, "mujoco", mujoco.__version__)'
-    command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
-    nproc
-  } 2>&1 | tee "$OUT/env.txt"
+  # 1-2. The wheels the GPU machine lacks; what this machine is (env.txt).
+  setup || return 1
   # 3. The cells, in one process: the runner stops training (checkpointed) and leaves the remaining cells
   #    at --budget-s; the time box behind it (SIGTERM: the current chunk finishes and checkpoints, then
   #    the report) leaves room for the evaluation of the last cell and for steps 4-5.

@@ -6,6 +6,7 @@ One module per benchmark, each saying in its docstring what it measures and what
     graph     scene-graph / metric-map update cost per env step       (bench/graph.py)
     model     actor-critic forward / forward+grad ms per variant      (bench/model.py)
     train     PPO train env steps/s (env + update) per num_envs       (bench/train.py)
+    profile   device time of one PPO update per source module         (bench/profile.py)
     conv      conv encoder fwd+grad in lax.scan: nn.Conv vs PatchConv (bench/conv.py)
     geodesic  geodesic distance fields: rasterise + solve time        (bench/geodesic.py)
     discovery object first-discovery distance per category and camera size (bench/discovery.py)

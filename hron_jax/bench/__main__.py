@@ -6,11 +6,12 @@ import argparse
 import sys
 
 from . import __doc__ as _PACKAGE_DOC
-from . import compile, conv, discovery, env, geodesic, graph, model, train
+from . import compile, conv, discovery, env, geodesic, graph, model, profile, train
 from .common import machine_info, print_load
 
 SUBCOMMANDS = {
-    m.__name__.rsplit(".", 1)[1]: m for m in (env, graph, model, train, compile, conv, geodesic, discovery)
+    m.__name__.rsplit(".", 1)[1]: m
+    for m in (env, graph, model, train, profile, compile, conv, geodesic, discovery)
 }
 
 
@@ -31,6 +32,8 @@ def main(argv=None) -> None:
             )
         )
     a = parser.parse_args(argv)
+    if hasattr(SUBCOMMANDS[a.cmd], "before_jax"):  # settings that must precede JAX's backends
+        SUBCOMMANDS[a.cmd].before_jax(a)
     from ..cli import tune_malloc
 
     tune_malloc()

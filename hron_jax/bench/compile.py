@@ -69,11 +69,13 @@ def bench_compile(config):
         yield dict(stage=name, compile_s=seconds, hlo_mb=len(compiled.as_text() or "") / 1e6)
 
 
-def hlo_by_source(text: str) -> dict[str, int]:
-    """Instructions of an optimised HLO module's text per source module: each instruction counts
-    for the innermost hron_jax file on its stack (metadata stack frames), 'via' the library whose
-    code emitted it when that is not ours (e.g. 'sim.py via mujoco'). Needs stacks deep enough to
-    reach our frames: run with jax_traceback_in_locations_limit raised (run() does)."""
+def instruction_sources(text: str) -> dict[str, tuple[str, str]]:
+    """{instruction name: (opcode, source)} of an optimised HLO module's text. The source is the
+    innermost hron_jax file on the instruction's stack (metadata stack frames), 'via' the library
+    whose code emitted it when that is not ours (e.g. 'sim.py via mujoco'), or "XLA's own" for what
+    XLA inserted (copies, layout changes; no metadata). Parameters are left out. Needs stacks deep
+    enough to reach our frames: compile with jax_traceback_in_locations_limit raised
+    (`deep_tracebacks`)."""
     import re
 
     sections, current = {}, None
@@ -113,11 +115,32 @@ def hlo_by_source(text: str) -> dict[str, int]:
             frame = parent
         return "(no hron_jax frame)"
 
+    out = {}
+    instruction = re.compile(r"\s*(?:ROOT )?%(\S+) = .*? ([a-z][\w-]*)\(")
+    for line in text.splitlines():
+        m = instruction.match(line)
+        if m and m.group(2) != "parameter":
+            frame = re.search(r"stack_frame_id=(\d+)", line)
+            out[m.group(1)] = (m.group(2), key(int(frame.group(1))) if frame else "(XLA's own: no source)")
+    return out
+
+
+def hlo_by_source(text: str) -> dict[str, int]:
+    """Instructions of an optimised HLO module's text per source (`instruction_sources`), most first."""
     counts: dict[str, int] = {}
-    for m in re.finditer(r"stack_frame_id=(\d+)", text):
-        k = key(int(m.group(1)))
-        counts[k] = counts.get(k, 0) + 1
+    for _, source in instruction_sources(text).values():
+        counts[source] = counts.get(source, 0) + 1
     return dict(sorted(counts.items(), key=lambda kv: -kv[1]))
+
+
+def deep_tracebacks() -> None:
+    """Stacks deep enough to reach hron_jax frames under MJX / flax / optax code (for
+    `instruction_sources`). They make bigger modules that compile slower, so only the source
+    tables use them, on programs traced afresh."""
+    import jax
+
+    jax.config.update("jax_traceback_in_locations_limit", 64)
+    jax.clear_caches()
 
 
 HEADER = "| stage | compile s | HLO text MB |\n| --- | ---: | ---: |"
@@ -150,14 +173,9 @@ def run(a: argparse.Namespace) -> None:
     )
     stream_table(HEADER, bench_compile(config), format_row)
     if a.by_source:
-        # Stacks deep enough to reach hron_jax frames under MJX / flax / optax code make bigger
-        # modules that compile slower, so the chunk is compiled once more for this table only.
-        import jax
-
         from ..training import programs
 
-        jax.config.update("jax_traceback_in_locations_limit", 64)
-        jax.clear_caches()
+        deep_tracebacks()
         prog = programs(config)
         text = prog.chunk.lower(prog.abstract, 1).compile(prog.compiler_options).as_text() or ""
         counts = hlo_by_source(text)

@@ -6,9 +6,9 @@ minibatches of ~--minibatch-size samples (the paper's 128); and of the rollout a
 with the sampled policy: env + policy forward), so the update's share shows. Times: best of
 --repeats calls after compilation (init / compile times go to stderr).
 
-Prints: the task and sizes, then the Markdown table | num_envs | minibatches x epochs | compile s |
-s / update | train env steps / s | rollout-only steps / s | update share |, a row as soon as that
-num_envs is measured.
+Prints: the task and sizes, then the Markdown table | num_envs | minibatches x epochs | init +
+chunk compile s | s / update | train env steps / s | rollout-only steps / s | update share |, a
+row as soon as that num_envs is measured.
 """
 
 from __future__ import annotations
@@ -21,59 +21,61 @@ import numpy as np
 from .common import progress, stream_table, timed
 
 
-def bench_train(
-    task: str = "exploratory",
-    model: str = "rgbd_sg_attn",
-    num_envs=(16, 64, 256),
-    num_steps: int = 8,
-    minibatch_size: int = 128,
-    epochs: int | None = None,
-    repeats: int = 2,
-    extra: dict | None = None,
-    log=progress,
-):
-    """Yields a row per num_envs as soon as it is measured (see the module docstring).
-    extra: more train.py options (dest names)."""
+def train_config(a: argparse.Namespace, num_envs: int):
+    """The TrainConfig train.py builds for these benchmark options at num_envs (one update)."""
+    from ..cli import config_from_args
+
+    batch = num_envs * a.num_steps
+    args = dict(
+        task=a.task,
+        model=a.model,
+        num_envs=num_envs,
+        num_steps=a.num_steps,
+        total_steps=batch,
+        minibatches=max(1, batch // a.minibatch_size),
+    )
+    if a.epochs is not None:
+        args["epochs"] = a.epochs
+    if a.distractors:
+        args["distractors"] = True
+    if a.image_size is not None:
+        args["env_option"] = [f"image_size={a.image_size}"]
+    return config_from_args(args)
+
+
+def bench_train(a: argparse.Namespace, log=progress):
+    """Yields a row per --num-envs as soon as it is measured (see the module docstring)."""
     import jax
 
-    from ..cli import config_from_args
     from ..training import programs, seed_keys
 
-    for B in num_envs:
+    for B in a.num_envs:
+        cfg = train_config(a, B)
+        num_steps = cfg.ppo.num_steps
         batch = B * num_steps
-        args = dict(
-            task=task,
-            model=model,
-            num_envs=B,
-            num_steps=num_steps,
-            total_steps=batch,
-            minibatches=max(1, batch // minibatch_size),
-            **(extra or {}),
-        )
-        if epochs is not None:
-            args["epochs"] = epochs
-        cfg = config_from_args(args)
         t = time.perf_counter()
         prog = programs(cfg)
         runner = jax.block_until_ready(prog.initialize(seed_keys(cfg)))
         t_init = time.perf_counter() - t
         fn, t_compile = prog.compiled_chunk(1)
         best = np.inf
-        for _ in range(repeats):
+        for _ in range(a.repeats):
             (runner, _), t = timed(lambda: fn(runner))
             best = min(best, t)
         params = jax.tree.map(lambda x: x[0], runner.params)
         ev = jax.jit(prog.ppo.evaluate, static_argnums=(2, 3))
         _, t_ev_compile = timed(lambda: ev(params, jax.random.PRNGKey(1), num_steps, False))
-        best_ev = min(
-            timed(lambda: ev(params, jax.random.PRNGKey(2 + i), num_steps, False))[1] for i in range(repeats)
+        key = jax.random.PRNGKey
+        best_ev = min(timed(lambda: ev(params, key(2 + i), num_steps, False))[1] for i in range(a.repeats))
+        log(
+            f"B={B}: init {t_init:.1f} s, chunk compile {t_compile:.1f} s, rollout-only compile "
+            f"{t_ev_compile:.1f} s, {batch / best:.0f} train steps/s"
         )
-        log(f"B={B}: init {t_init:.1f} s, compile {t_compile:.1f} s, {batch / best:.0f} train steps/s")
         yield dict(
             num_envs=B,
             minibatches=cfg.ppo.num_minibatches,
             epochs=cfg.ppo.update_epochs,
-            compile_s=t_init + t_compile + t_ev_compile,
+            compile_s=t_init + t_compile,
             s_per_update=best,
             train_steps_per_s=batch / best,
             rollout_steps_per_s=batch / best_ev,
@@ -82,7 +84,7 @@ def bench_train(
 
 
 HEADER = (
-    "| num_envs | minibatches x epochs | compile s | s / update | train env steps / s | "
+    "| num_envs | minibatches x epochs | init + chunk compile s | s / update | train env steps / s | "
     "rollout-only steps / s | update share |\n"
     "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
 )
@@ -96,26 +98,25 @@ def format_row(r: dict) -> str:
     )
 
 
-def add_args(p: argparse.ArgumentParser) -> None:
+def add_args(p: argparse.ArgumentParser, single_num_envs: bool = False) -> None:
     p.add_argument("--task", default="exploratory", choices=("choice", "directed", "exploratory"))
     p.add_argument("--model", default="rgbd_sg_attn")
-    p.add_argument("--num-envs", type=int, nargs="+", default=[16, 64, 256])
+    if single_num_envs:
+        p.add_argument("--num-envs", type=int, nargs=1, default=[64])
+    else:
+        p.add_argument("--num-envs", type=int, nargs="+", default=[16, 64, 256])
     p.add_argument("--num-steps", type=int, default=8, help="rollout length per update")
     p.add_argument("--minibatch-size", type=int, default=128)
     p.add_argument("--epochs", type=int, default=None, help="default: the task's PPO default")
+    p.add_argument("--image-size", type=int, default=None, help="square camera (default: the task's, 32)")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--distractors", action="store_true")
 
 
 def run(a: argparse.Namespace) -> None:
-    extra = {"distractors": True} if a.distractors else {}
     print(
-        f"task {a.task}, model {a.model}, num_steps {a.num_steps}, minibatch ~{a.minibatch_size}", flush=True
+        f"task {a.task}, model {a.model}, num_steps {a.num_steps}, minibatch ~{a.minibatch_size}, "
+        f"camera {a.image_size or 'default'}",
+        flush=True,
     )
-    stream_table(
-        HEADER,
-        bench_train(
-            a.task, a.model, tuple(a.num_envs), a.num_steps, a.minibatch_size, a.epochs, a.repeats, extra
-        ),
-        format_row,
-    )
+    stream_table(HEADER, bench_train(a), format_row)

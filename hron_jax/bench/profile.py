@@ -1,0 +1,115 @@
+"""Device time of one PPO update per source module (`python -m hron_jax.bench profile`).
+
+Profiles the program train.py runs (hron_jax.training, one seed, the options of `bench train`):
+compiles the 1-update chunk, runs it once to warm up, then --repeats times under
+jax.profiler.trace, and attributes the time of every XLA op in the trace to the innermost
+hron_jax source file on the op's stack (`bench compile`'s `instruction_sources`, e.g. 'sim.py via
+mujoco' for MJX physics, 'models/gnn.py via flax', 'ppo.py'). Control-flow ops (while, conditional,
+call) are left out, since their time is that of the ops inside them. Ops are read from the device
+planes' "XLA Ops" line on a GPU, and from the host threads that run XLA's thunks on a CPU (whose
+ops overlap on several threads, so shares are of op time, not of wall time).
+
+Prints: the task and sizes, the wall seconds per update, then the Markdown table | source | ms per
+update | share of op time | ops |, most expensive first, and the op time next to the wall time
+(on a GPU the gap is time the device waited: launches, host work, syncs). The raw trace stays in
+--trace-dir for TensorBoard / Perfetto when given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import tempfile
+import time
+
+from .common import progress
+from .compile import deep_tracebacks, instruction_sources
+from .train import add_args as add_train_args
+from .train import train_config
+
+CONTROL_FLOW = ("while", "conditional", "call", "async-start", "async-done")
+
+
+def before_jax(a: argparse.Namespace) -> None:
+    """Run before JAX starts its backends: XLA:GPU without command buffers (see the docstring)."""
+    import os
+
+    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_gpu_enable_command_buffer="
+
+
+def op_times(xplane_path: str) -> dict[str, float]:
+    """{HLO instruction name: seconds} summed over a trace's XLA op events (the events that carry
+    an hlo_op: on a GPU its streams' kernels and copies, on a CPU the thunks on host threads)."""
+    from jax.profiler import ProfileData
+
+    data = ProfileData.from_file(xplane_path)
+    planes = [p for p in data.planes if p.name.startswith("/device:")]
+    if not planes:  # CPU
+        planes = [p for p in data.planes if p.name.startswith("/host:")]
+    out: dict[str, float] = {}
+    for plane in planes:
+        for line in plane.lines:
+            for e in line.events:
+                name = dict(e.stats).get("hlo_op")
+                if name is not None:
+                    out[name] = out.get(name, 0.0) + e.duration_ns * 1e-9
+    return out
+
+
+def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=progress) -> dict:
+    """{wall_s (best untraced update), rows: [(source, seconds of the traced update, ops)], trace}."""
+    import jax
+
+    from ..training import programs, seed_keys
+
+    deep_tracebacks()
+    prog = programs(config)
+    runner = jax.block_until_ready(prog.initialize(seed_keys(config)))
+    fn, t_compile = prog.compiled_chunk(1)
+    log(f"compiled the chunk in {t_compile:.1f} s")
+    sources = instruction_sources(fn.as_text() or "")
+    runner, _ = jax.block_until_ready(fn(runner))  # warm-up
+    wall = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        runner, _ = jax.block_until_ready(fn(runner))
+        wall = min(wall, time.perf_counter() - t)
+    trace_dir = trace_dir or tempfile.mkdtemp(prefix="hron_profile_")
+    with jax.profiler.trace(trace_dir):
+        runner, _ = jax.block_until_ready(fn(runner))
+    path = sorted(glob.glob(f"{trace_dir}/**/*.xplane.pb", recursive=True))[-1]
+    per_source: dict[str, list] = {}
+    for name, seconds in op_times(path).items():
+        opcode, source = sources.get(name, ("?", "(not in the chunk)"))
+        if opcode in CONTROL_FLOW:
+            continue
+        row = per_source.setdefault(source, [0.0, 0])
+        row[0] += seconds
+        row[1] += 1
+    rows = sorted(((s, t, n) for s, (t, n) in per_source.items()), key=lambda r: -r[1])
+    return dict(wall_s=wall, rows=rows, trace=path)
+
+
+def add_args(p: argparse.ArgumentParser) -> None:
+    add_train_args(p, single_num_envs=True)
+    p.add_argument("--trace-dir", help="keep the raw trace here (default: a temporary directory)")
+
+
+def run(a: argparse.Namespace) -> None:
+    config = train_config(a, a.num_envs[0])
+    batch = config.ppo.num_envs * config.ppo.num_steps
+    print(
+        f"task {a.task}, model {a.model}, {config.ppo.num_envs} envs x {config.ppo.num_steps} steps, "
+        f"{config.ppo.num_minibatches} minibatches x {config.ppo.update_epochs} epochs, camera "
+        f"{config.env.camera.width}x{config.env.camera.height}",
+        flush=True,
+    )
+    r = profile_update(config, a.repeats, a.trace_dir)
+    print(f"wall {1e3 * r['wall_s']:.1f} ms per update ({batch / r['wall_s']:.0f} env steps/s)\n")
+    total = sum(t for _, t, _ in r["rows"])
+    print("| source (innermost hron_jax module) | ms per update | share of op time | ops |")
+    print("| --- | ---: | ---: | ---: |")
+    for source, t, n in r["rows"][:20]:
+        print(f"| {source} | {1e3 * t:.2f} | {100 * t / total:.1f} % | {n} |")
+    print(f"| all ops | {1e3 * total:.2f} | 100 % | {sum(n for *_, n in r['rows'])} |")
+    print(f"\ntrace: {r['trace']}")

@@ -1,0 +1,46 @@
+"""The profiling attribution of `python -m hron_jax.bench profile` / `compile --by-source`: XLA ops
+of a trace are mapped to the hron_jax module whose code emitted them."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hron_jax.bench.compile import deep_tracebacks, hlo_by_source, instruction_sources
+from hron_jax.bench.profile import op_times
+from hron_jax.ppo import compute_gae
+
+
+@pytest.fixture
+def deep_stacks():
+    limit = jax.config.jax_traceback_in_locations_limit
+    deep_tracebacks()
+    yield
+    jax.config.update('jax_traceback_in_locations_limit', limit)  # other tests compile leaner
+
+
+def test_profiled_ops_are_attributed_to_their_source_module(tmp_path, deep_stacks):
+    T, B = 64, 256
+    rng = np.random.default_rng(0)
+    reward, value = (jnp.asarray(rng.normal(size=(T, B)), jnp.float32) for _ in range(2))
+    done = jnp.asarray(rng.random((T, B)) < 0.1)
+    final_value, last_value = jnp.zeros((T, B)), jnp.ones(B)
+
+    def gae_then_loss(reward, value):  # ppo.py's GAE, then a reduction of this file's own
+        adv, target = compute_gae(reward, value, done, done & False, final_value, last_value, 0.99, 0.95)
+        return jnp.square(adv - target).sum()
+
+    fn = jax.jit(gae_then_loss).lower(reward, value).compile()
+    sources = instruction_sources(fn.as_text())
+    assert 'ppo.py' in {s for _, s in sources.values()}
+    assert sum(hlo_by_source(fn.as_text()).values()) == len(sources)
+    jax.block_until_ready(fn(reward, value))
+    with jax.profiler.trace(str(tmp_path)):
+        jax.block_until_ready(fn(reward, value))
+    (path,) = tmp_path.glob('**/*.xplane.pb')
+    times = op_times(str(path))
+    assert times and set(times) <= set(sources), set(times) - set(sources)
+    assert all(t >= 0 for t in times.values())
+    # GAE's reverse scan (a while loop) is ppo.py's; the only ops of no module are XLA's copies
+    by_source = {sources[n][1] for n in times}
+    assert 'ppo.py' in by_source and by_source <= {'ppo.py', "(XLA's own: no source)", '(no hron_jax frame)'}

@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# The prepared script of a GPU lease for issue 12's measurements (../shared/gpu/README.md): the
+# main model on the exploratory task at GPU batch sizes, each stage time-boxed, rows printed as
+# measured. Leaves in $OUT: log (everything printed) and env.txt (devices, versions, nvidia-smi).
+#
+#   bash tools/gpu_bench.sh [SECONDS] [STAGE...]
+#     SECONDS  time box of the whole script (default 540)
+#     STAGE    any of (default: all, in this order)
+#       env       bench env: physics, 128x128 render, env step at 1024 / 4096 / 8192 envs
+#       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
+#                 steps, 32x32 camera, 8 minibatches (and its compile time)
+#       train128  bench train: the same update with the 128x128 camera
+#       trainpy   train.py as a user runs it (1024 envs x 16 steps, 8 minibatches, 2 updates,
+#                 no compile cache): init / chunk compile seconds and env steps/s from its log
+#
+# Device call (after ../shared/gpu/fetch-wheels.sh here; never set MUJOCO_GL=egl there):
+#   run(command="bash tools/gpu_bench.sh 540", carry=[".whl"], timeout_s=600)
+set -uo pipefail
+cd "$(dirname "$0")/.."
+
+SECONDS_BOX=${1:-540}
+shift $(($# > 0 ? 1 : 0))
+STAGES=("$@")
+((${#STAGES[@]})) || STAGES=(env profile train128 trainpy)
+OUT=${OUT:-/tmp/gpu_bench_out}
+mkdir -p "$OUT"
+# shellcheck source=tools/gpu_lib.sh
+source tools/gpu_lib.sh
+
+# box SECONDS: SECONDS, or what is left of the script's box less a margin, whichever is smaller.
+box() {
+  local l=$(($(left) - 15))
+  echo $(($1 < l ? $1 : l))
+}
+
+main() {
+  setup || return 1
+  local batch=(--num-steps 16 --minibatch-size 8192)
+  for s in "${STAGES[@]}"; do
+    case $s in
+      env) step "$(box 100)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
+        --height 128 --backends kernel --native-envs 4 --steps 10 --repeats 2 ;;
+      profile) step "$(box 200)" python3 -m hron_jax.bench profile --num-envs 4096 "${batch[@]}" \
+        --image-size 32 --repeats 2 ;;
+      train128) step "$(box 180)" python3 -m hron_jax.bench train --num-envs 4096 "${batch[@]}" \
+        --image-size 128 --repeats 2 ;;
+      trainpy) step "$(box 220)" python3 train.py --task exploratory --num-envs 1024 --num-steps 16 \
+        --minibatches 8 --total-steps 32768 --log-every 1 --compile-cache none --no-progress \
+        --out /tmp/gpu_bench_run ;;
+      *) echo "unknown stage $s (valid: env profile train128 trainpy)" ;;
+    esac
+  done
+}
+
+main 2>&1 | tee "$OUT/log"
