@@ -12,6 +12,7 @@ import functools
 import math
 import pathlib
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import jraph
@@ -909,3 +910,32 @@ def test_patch_conv_equals_xla_convolution(size, kernel, stride):
     g_ours = jax.grad(loss(ours), argnums=(0, 1))(params, x)
     g_ref = jax.grad(loss(ref), argnums=(0, 1))(params, x)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-4), g_ours, g_ref)
+
+
+def test_take_rows_is_a_gather_with_a_matmul_gradient_on_gpu():
+    # hron_jax.models.lookup: same forward (bitwise) and gradient as table[idx]; lowered for a GPU
+    # its backward has no scatter (the one-hot matmul that replaces XLA:GPU's atomic scatter-add),
+    # on the CPU it keeps the gather's own scatter-add.
+    from hron_jax.models.lookup import Embed, _matmul_grad, take_rows
+
+    rng = np.random.default_rng(0)
+    table = jnp.asarray(rng.normal(size=(11, 2, 3)), jnp.float32)
+    idx = jnp.asarray(rng.integers(0, 11, size=(5, 40)), jnp.int32)
+    cot = jnp.asarray(rng.normal(size=(5, 40, 2, 3)), jnp.float32)
+    assert (take_rows(table, idx) == table[idx]).all()
+    loss = lambda f: lambda t: jnp.sum(f(t) * cot)  # noqa: E731
+    grad = jax.jit(jax.grad(loss(lambda t: take_rows(t, idx))))
+    g_ref = jax.grad(loss(lambda t: t[idx]))(table)
+    assert np.abs(g_ref).min() > 0  # every row was hit, so the comparisons cover all of them
+    np.testing.assert_array_equal(grad(table), g_ref)  # CPU: the same scatter-add
+    np.testing.assert_allclose(_matmul_grad(11, idx, cot), g_ref, rtol=1e-5, atol=1e-5)
+    traced = grad.trace(table)
+    cpu, gpu = traced.lower().as_text(), traced.lower(lowering_platforms=("cuda",)).as_text()
+    assert "scatter" in cpu and "dot_general" not in cpu
+    assert "scatter" not in gpu and "dot_general" in gpu
+    # Embed keeps nn.Embed's parameters and outputs
+    ids = idx[:2] % 7
+    ref = nn.Embed(7, 4)
+    params = ref.init(jax.random.PRNGKey(0), ids)
+    assert jax.tree.structure(Embed(7, 4).init(jax.random.PRNGKey(0), ids)) == jax.tree.structure(params)
+    assert (Embed(7, 4).apply(params, ids) == ref.apply(params, ids)).all()

@@ -29,6 +29,7 @@ from hron_jax import graph_types as gt
 from hron_jax.models import pooling
 from hron_jax.models.config import ModelConfig
 from hron_jax.models.gnn import GCNConv, HGTConv, edge_relations
+from hron_jax.models.lookup import Embed
 
 # PPO-style orthogonal init (PureJaxRL): sqrt(2) gain for ReLU layers.
 RELU_INIT = nn.initializers.orthogonal(np.sqrt(2.0))
@@ -150,7 +151,7 @@ class MapEncoder(nn.Module):
         c = self.class_channel
         cls = jnp.clip(jnp.round(m[..., c]).astype(jnp.int32), 0, self.num_classes - 1)
         observed = m[..., MAP_OBSERVED_CHANNEL, None] > 0.5
-        emb = nn.Embed(self.num_classes, self.class_features, name="class_embed")(cls)
+        emb = Embed(self.num_classes, self.class_features, name="class_embed")(cls)
         rest = jnp.concatenate([m[..., :c], m[..., c + 1 :]], axis=-1).astype(emb.dtype)
         x = jnp.concatenate([rest, jnp.where(observed, emb, 0.0)], axis=-1)
         return ConvEncoder(self.features, self.kernels, self.strides, self.fc, name="conv")(x)
@@ -181,8 +182,8 @@ class NodeFeaturizer(nn.Module):
         # otherwise poison the kernel's gradient (0 * NaN) although the output is masked.
         geom = jnp.where(mask[..., None], jnp.concatenate([pos, size], -1), 0.0)
         h = (
-            nn.Embed(self.num_classes, self.features, name="category_embed")(cat)
-            + nn.Embed(gt.NUM_NODE_TYPES, self.features, name="type_embed")(nt)
+            Embed(self.num_classes, self.features, name="category_embed")(cat)
+            + Embed(gt.NUM_NODE_TYPES, self.features, name="type_embed")(nt)
             + nn.Dense(self.features, name="geometry")(geom)
         )
         return jnp.where(mask[..., None], h, 0.0)

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hron_jax import graph_types as gt
+from hron_jax.models.lookup import take_rows
 
 
 # PyG's Linear/HeteroLinear default: kaiming_uniform(a=sqrt(5)) == U(+-1/sqrt(fan_in)), i.e.
@@ -173,7 +174,7 @@ def _type_blocks(node_type, num_types: int, block: int):
 
 def _block_dense(xb, blk_type, kernel, bias):
     """Per-type affine map on type blocks: xb f32[nb, C, I], kernel [T, I, O] -> f32[nb, C, O]."""
-    return jnp.einsum("bci,bio->bco", xb, kernel[blk_type]) + bias[blk_type][:, None, :]
+    return jnp.einsum("bci,bio->bco", xb, take_rows(kernel, blk_type)) + take_rows(bias, blk_type)[:, None, :]
 
 
 def _slot_kernels(rel_kernel, slot_rel):
@@ -225,9 +226,10 @@ def _hgt(
     # Relation transforms of every node's key and value for the S relations it is a source of:
     # per block, (k | v) x head: [C, D] @ [D, S * D]. The result stays in the matmul's own layout
     # [nb, 2 H, C, S D]; each edge gathers its 2 H rows of D (no transposed copy of the table).
-    w = jnp.stack([_slot_kernels(params["k_rel"], slot_rel), _slot_kernels(params["v_rel"], slot_rel)], 1)[
-        blk_type
-    ]  # [nb, 2, H, D, S*D]
+    w = take_rows(
+        jnp.stack([_slot_kernels(params["k_rel"], slot_rel), _slot_kernels(params["v_rel"], slot_rel)], 1),
+        blk_type,
+    )  # [nb, 2, H, D, S*D]
     kvt = jnp.einsum("bcjhd,bjhde->bjhce", kv, w)  # [nb, 2, H, C, S*D]
     ps, pd = pos[senders], pos[receivers]
     # Row of (block, k|v, head, c) in kvt for each edge and head, then its slot's D columns.
@@ -237,7 +239,7 @@ def _hgt(
     k_e = table[base * s + slot]  # [E, H, D]
     v_e = table[(base + h * c) * s + slot]
     q_e = q[pd]
-    score = jnp.sum(q_e * k_e, axis=-1) * params["p_rel"][rel] / math.sqrt(d)
+    score = jnp.sum(q_e * k_e, axis=-1) * take_rows(params["p_rel"], rel) / math.sqrt(d)
     alpha = masked_segment_softmax(score, live, *_softmax_groups(pd, rel, rows, r, softmax))
     # where() rather than a product with alpha = 0: a non-finite value on a dead row must not leak.
     msg = jnp.where(live[:, None, None], v_e * alpha[..., None], 0.0)
@@ -247,7 +249,7 @@ def _hgt(
         jax.nn.gelu(agg, approximate=False), blk_type, params["out_kernel"], params["out_bias"]
     )
     if f_in == f:
-        gate = jax.nn.sigmoid(params["skip"][blk_type])[:, None, None]
+        gate = jax.nn.sigmoid(take_rows(params["skip"], blk_type))[:, None, None]
         out = gate * out + (1.0 - gate) * xb
     out = out.reshape(rows, f)[pos]
     return jnp.where(node_mask[:, None], out, 0.0), alpha
@@ -288,7 +290,7 @@ def _hgt_single(
     k_all = jnp.einsum("nhd,rhde->nrhe", k, params["k_rel"]).reshape(n * r, h, d)
     v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
     row = senders * r + rel
-    score = jnp.sum(q[receivers] * k_all[row], axis=-1) * params["p_rel"][rel] / math.sqrt(d)
+    score = jnp.sum(q[receivers] * k_all[row], axis=-1) * take_rows(params["p_rel"], rel) / math.sqrt(d)
     alpha = masked_segment_softmax(score, live, *_softmax_groups(receivers, rel, n, r, softmax))
     msg = jnp.where(live[:, None, None], v_all[row] * alpha[..., None], 0.0)
     agg = jax.ops.segment_sum(msg, receivers, n).reshape(n, f)
