@@ -302,20 +302,18 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             params, opt_state, rng = carry
             rng, k_perm = jax.random.split(rng)
             perm = jax.random.permutation(k_perm, config.batch_size)
-            mbs = jax.tree.map(
-                lambda x: jnp.take(x, perm, axis=0).reshape(
-                    (config.num_minibatches, config.minibatch_size) + x.shape[1:]
-                ),
-                batch,
-            )
+            perm = perm.reshape(config.num_minibatches, config.minibatch_size)
 
-            def minibatch(carry, mb):
+            # Each minibatch is gathered where it is used: a shuffled copy of the whole batch
+            # would double the rollout's memory (4096 envs x 16 steps of 128 x 128 RGB-D: 17 GB).
+            def minibatch(carry, idx):
                 params, opt_state = carry
+                mb = jax.tree.map(lambda x: jnp.take(x, idx, axis=0), batch)
                 grads, aux = grad_fn(params, *mb, runner.kl_coeff)
                 updates, opt_state = tx.update(grads, opt_state, params)
                 return (optax.apply_updates(params, updates), opt_state), aux
 
-            (params, opt_state), aux = jax.lax.scan(minibatch, (params, opt_state), mbs)
+            (params, opt_state), aux = jax.lax.scan(minibatch, (params, opt_state), perm)
             return (params, opt_state, rng), aux
 
         (params, opt_state, rng), aux = jax.lax.scan(

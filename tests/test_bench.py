@@ -32,7 +32,12 @@ def test_profiled_ops_are_attributed_to_their_source_module(tmp_path, deep_stack
 
     fn = jax.jit(gae_then_loss).lower(reward, value).compile()
     sources = instruction_sources(fn.as_text())
-    assert 'ppo.py' in {s for _, s in sources.values()}
+    assert 'ppo.py' in {s for _, s, _ in sources.values()}
+    assert any(
+        'scan' in name_stack or 'while' in name_stack
+        for _, s, name_stack in sources.values()
+        if s == 'ppo.py'
+    )
     assert sum(hlo_by_source(fn.as_text()).values()) == len(sources)
     jax.block_until_ready(fn(reward, value))
     with jax.profiler.trace(str(tmp_path)):

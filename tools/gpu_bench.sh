@@ -8,8 +8,10 @@
 #     STAGE    any of (default: all, in this order)
 #       env       bench env: physics, 128x128 render, env step at 1024 / 4096 / 8192 envs
 #       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
-#                 steps, 32x32 camera, 8 minibatches (and its compile time)
-#       train128  bench train: the same update with the 128x128 camera
+#                 steps, 32x32 camera, 8 minibatches of 8192 (and its compile time)
+#       train32   bench train: that update as train.py runs it (CUDA graphs on): env steps/s
+#       train128  bench train: the same with the 128x128 camera and 32 minibatches of 2048 (8192
+#                 need 79 GB at 128x128)
 #       trainpy   train.py as a user runs it (1024 envs x 16 steps, 8 minibatches, 2 updates,
 #                 no compile cache): init / chunk compile seconds and env steps/s from its log
 #
@@ -21,7 +23,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env profile train128 trainpy)
+((${#STAGES[@]})) || STAGES=(env profile train32 train128 trainpy)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -35,19 +37,21 @@ box() {
 
 main() {
   setup || return 1
-  local batch=(--num-steps 16 --minibatch-size 8192)
+  local batch=(--num-envs 4096 --num-steps 16)
   for s in "${STAGES[@]}"; do
     case $s in
       env) step "$(box 100)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
         --height 128 --backends kernel --native-envs 4 --steps 10 --repeats 2 ;;
-      profile) step "$(box 200)" python3 -m hron_jax.bench profile --num-envs 4096 "${batch[@]}" \
+      profile) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 ;;
-      train128) step "$(box 180)" python3 -m hron_jax.bench train --num-envs 4096 "${batch[@]}" \
+      train32) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
+        --image-size 32 --repeats 2 ;;
+      train128) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \
         --image-size 128 --repeats 2 ;;
       trainpy) step "$(box 220)" python3 train.py --task exploratory --num-envs 1024 --num-steps 16 \
         --minibatches 8 --total-steps 32768 --log-every 1 --compile-cache none --no-progress \
         --out /tmp/gpu_bench_run ;;
-      *) echo "unknown stage $s (valid: env profile train128 trainpy)" ;;
+      *) echo "unknown stage $s (valid: env profile train32 train128 trainpy)" ;;
     esac
   done
 }

@@ -69,13 +69,14 @@ def bench_compile(config):
         yield dict(stage=name, compile_s=seconds, hlo_mb=len(compiled.as_text() or "") / 1e6)
 
 
-def instruction_sources(text: str) -> dict[str, tuple[str, str]]:
-    """{instruction name: (opcode, source)} of an optimised HLO module's text. The source is the
-    innermost hron_jax file on the instruction's stack (metadata stack frames), 'via' the library
-    whose code emitted it when that is not ours (e.g. 'sim.py via mujoco'), or "XLA's own" for what
-    XLA inserted (copies, layout changes; no metadata). Parameters are left out. Needs stacks deep
-    enough to reach our frames: compile with jax_traceback_in_locations_limit raised
-    (`deep_tracebacks`)."""
+def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
+    """{instruction name: (opcode, source, op_name)} of an optimised HLO module's text (op_name:
+    the JAX name stack of its metadata, e.g. '.../transpose(jvp(ActorCritic))/.../scatter-add').
+    The source is the innermost hron_jax file on the instruction's stack (metadata stack frames),
+    'via' the library whose code emitted it when that is not ours (e.g. 'sim.py via mujoco'), or
+    "XLA's own" for what XLA inserted (copies, layout changes; no metadata). Parameters are left
+    out. Needs stacks deep enough to reach our frames: compile with
+    jax_traceback_in_locations_limit raised (`deep_tracebacks`)."""
     import re
 
     sections, current = {}, None
@@ -121,14 +122,19 @@ def instruction_sources(text: str) -> dict[str, tuple[str, str]]:
         m = instruction.match(line)
         if m and m.group(2) != "parameter":
             frame = re.search(r"stack_frame_id=(\d+)", line)
-            out[m.group(1)] = (m.group(2), key(int(frame.group(1))) if frame else "(XLA's own: no source)")
+            op_name = re.search(r'op_name="([^"]*)"', line)
+            out[m.group(1)] = (
+                m.group(2),
+                key(int(frame.group(1))) if frame else "(XLA's own: no source)",
+                op_name.group(1) if op_name else "",
+            )
     return out
 
 
 def hlo_by_source(text: str) -> dict[str, int]:
     """Instructions of an optimised HLO module's text per source (`instruction_sources`), most first."""
     counts: dict[str, int] = {}
-    for _, source in instruction_sources(text).values():
+    for _, source, _ in instruction_sources(text).values():
         counts[source] = counts.get(source, 0) + 1
     return dict(sorted(counts.items(), key=lambda kv: -kv[1]))
 

@@ -1,18 +1,22 @@
 """Device time of one PPO update per source module (`python -m hron_jax.bench profile`).
 
 Profiles the program train.py runs (hron_jax.training, one seed, the options of `bench train`):
-compiles the 1-update chunk, runs it once to warm up, then --repeats times under
-jax.profiler.trace, and attributes the time of every XLA op in the trace to the innermost
-hron_jax source file on the op's stack (`bench compile`'s `instruction_sources`, e.g. 'sim.py via
-mujoco' for MJX physics, 'models/gnn.py via flax', 'ppo.py'). Control-flow ops (while, conditional,
-call) are left out, since their time is that of the ops inside them. Ops are read from the device
-planes' "XLA Ops" line on a GPU, and from the host threads that run XLA's thunks on a CPU (whose
-ops overlap on several threads, so shares are of op time, not of wall time).
+compiles the 1-update chunk, runs it once to warm up and --repeats times untraced (wall time, best
+of), then once under jax.profiler.trace, and attributes the time of every XLA op in the trace to
+the innermost hron_jax source file on the op's stack (`bench compile`'s `instruction_sources`,
+e.g. 'sim.py via mujoco' for MJX physics, 'models/gnn.py via flax', 'ppo.py'). Control-flow ops
+(while, conditional, call) are left out, since their time is that of the ops inside them. Ops are
+read from the GPU's stream lines (kernels and copies), or from the host threads that run XLA's
+thunks on a CPU (whose ops overlap on several threads, so shares are of op time, not of wall
+time). On a GPU the process runs without CUDA graphs (XLA command buffers), whose kernels a trace
+names only by their graph: what is profiled launches every kernel on its own, and its wall time is
+that of this setting.
 
-Prints: the task and sizes, the wall seconds per update, then the Markdown table | source | ms per
-update | share of op time | ops |, most expensive first, and the op time next to the wall time
-(on a GPU the gap is time the device waited: launches, host work, syncs). The raw trace stays in
---trace-dir for TensorBoard / Perfetto when given.
+Prints: the task and sizes, the wall ms per update, then the Markdown table | source | ms per
+update | share of op time | ops |, most expensive first (on a GPU the gap between the op time and
+the wall time is time the device waited: launches, host work, syncs), then the 15 most expensive
+ops with the end of their JAX name stacks. The raw trace stays in --trace-dir when given
+(TensorBoard / Perfetto).
 """
 
 from __future__ import annotations
@@ -57,7 +61,8 @@ def op_times(xplane_path: str) -> dict[str, float]:
 
 
 def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=progress) -> dict:
-    """{wall_s (best untraced update), rows: [(source, seconds of the traced update, ops)], trace}."""
+    """{wall_s (best untraced update), rows: [(source, seconds of the traced update, ops)],
+    ops: [(instruction, seconds, source, op_name)] most expensive first, trace (path)}."""
     import jax
 
     from ..training import programs, seed_keys
@@ -79,15 +84,18 @@ def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=p
         runner, _ = jax.block_until_ready(fn(runner))
     path = sorted(glob.glob(f"{trace_dir}/**/*.xplane.pb", recursive=True))[-1]
     per_source: dict[str, list] = {}
+    ops = []
     for name, seconds in op_times(path).items():
-        opcode, source = sources.get(name, ("?", "(not in the chunk)"))
+        opcode, source, op_name = sources.get(name, ("?", "(not in the chunk)", ""))
         if opcode in CONTROL_FLOW:
             continue
         row = per_source.setdefault(source, [0.0, 0])
         row[0] += seconds
         row[1] += 1
+        ops.append((name, seconds, source, op_name))
     rows = sorted(((s, t, n) for s, (t, n) in per_source.items()), key=lambda r: -r[1])
-    return dict(wall_s=wall, rows=rows, trace=path)
+    ops.sort(key=lambda r: -r[1])
+    return dict(wall_s=wall, rows=rows, ops=ops, trace=path)
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
@@ -112,4 +120,8 @@ def run(a: argparse.Namespace) -> None:
     for source, t, n in r["rows"][:20]:
         print(f"| {source} | {1e3 * t:.2f} | {100 * t / total:.1f} % | {n} |")
     print(f"| all ops | {1e3 * total:.2f} | 100 % | {sum(n for *_, n in r['rows'])} |")
+    print("\n| op (most expensive) | ms per update | source | JAX name stack (its end) |")
+    print("| --- | ---: | --- | --- |")
+    for name, t, source, op_name in r["ops"][:15]:
+        print(f"| {name} | {1e3 * t:.2f} | {source} | {op_name[-90:]} |")
     print(f"\ntrace: {r['trace']}")
