@@ -27,6 +27,7 @@ from typing import Any
 
 from hron_jax.envs import DEFAULT_SCENES, TASKS, env_config
 from hron_jax.errors import ConfigError
+from hron_jax.labels import paper_label
 from hron_jax.models.config import VARIANTS, ModelConfig
 from hron_jax.paths import portable_path, resolve
 from hron_jax.ppo import PPOConfig
@@ -125,15 +126,6 @@ PRESETS: dict[str, dict[str, dict]] = {
 DEFAULT_TASK = 'exploratory'
 DEFAULT_MODEL = 'rgbd_sg_attn'
 MODELS = tuple(VARIANTS)
-LABELS = {
-    'rgbd': 'RGB-D only',
-    'rgbd_mm': 'RGB-D + MM',
-    'rgbd_sg': 'RGB-D + SG',
-    'rgbd_sg_attn': 'RGB-D + SG + TD ATTN',
-    'gcn': 'Kipf et al. (GCN)',
-    'yang': 'Yang et al.',
-}
-
 # Valid values of the numeric fields a user sets (dotted path -> (description, test)); fields not
 # listed still pass the generic rules of `_check_value`.
 _AT_LEAST_1 = ('>= 1', lambda v: v >= 1)
@@ -461,12 +453,8 @@ def build_network(config: TrainConfig, num_actions: int):
 
 def run_label(config: TrainConfig) -> str:
     """The model's name as the paper's tables write it."""
-    label = LABELS[config.model]
-    if config.task == 'choice' and config.network.use_graph and not config.network.use_rgbd:
-        label = label.replace('RGB-D + ', '')
-    if config.premap:
-        label = 'PM: ' + label
-    return label
+    symbolic = config.task == 'choice' and config.network.use_graph and not config.network.use_rgbd
+    return paper_label(config.model, symbolic, config.premap)
 
 
 def default_run_dir(config: TrainConfig) -> Path:

@@ -11,6 +11,7 @@ import pytest
 
 from hron_jax.cli import config_from_args
 from hron_jax.paths import REPO_ROOT
+from hron_jax.run_config import run_label
 
 ROOT = Path(REPO_ROOT)
 
@@ -196,6 +197,7 @@ def test_profiles(R, capsys, tmp_path):
         assert '--preset paper' in ' '.join(R.train_argv(cell, 0, Path('x'), 'paper'))
         assert paper.preset == 'paper' and R.paper_diff(paper) == []
         assert R.paper_diff(R.profile_config('cpu', cell))  # the cheap profile is not the paper's
+        assert cell.label == run_label(paper)  # the report's row = the run's own label
     assert R.profile_steps('paper', 'directed') == 1_500_000
     assert R.profile_steps('cpu', 'directed') == 131_072
     assert R.main(['--plan', '--runs', str(tmp_path), '--tables', '2']) == 0

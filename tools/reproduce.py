@@ -72,6 +72,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hron_jax.bench import machine  # noqa: E402
+from hron_jax.labels import paper_label  # noqa: E402
 
 # ------------------------------------------------------------------------------------------------
 # The grid, with the paper's numbers (hron_paper.tex Tables I-III; SR / SPL mean +- std)
@@ -96,18 +97,7 @@ class Cell:
 
     @property
     def label(self) -> str:
-        names = {
-            'rgbd': 'RGB-D only',
-            'rgbd_mm': 'RGB-D + MM',
-            'rgbd_sg': 'RGB-D + SG',
-            'rgbd_sg_attn': 'RGB-D + SG + TD ATTN',
-            'gcn': 'Kipf et al. (GCN)',
-            'yang': 'Yang et al.',
-        }
-        label = names[self.model]
-        if self.task == 'choice':  # symbolic task: the SG models see only the graph
-            label = label.replace('RGB-D + ', '')
-        return ('PM: ' + label) if self.premap else label
+        return paper_label(self.model, symbolic=self.task == 'choice', premap=self.premap)
 
 
 GRID: tuple[Cell, ...] = (
