@@ -889,18 +889,18 @@ def test_choice_env_observation_is_accepted():
     assert logits.shape == (2,) and np.isfinite(np.asarray(logits)).all()
 
 
+@pytest.mark.parametrize("impl", ["patches", "xla", "auto"])
 @pytest.mark.parametrize(
     "size,kernel,stride", [((32, 32), 8, 4), ((8, 8), 4, 2), ((4, 4), 3, 1), ((7, 10), 5, 3), ((9, 9), 2, 2)]
 )
-def test_patch_conv_equals_xla_convolution(size, kernel, stride):
-    """PatchConv (slices + matmul, fast gradients inside lax.scan on XLA:CPU) is nn.Conv: same
-    parameter shapes and init, same SAME-padded outputs and gradients as lax's convolution."""
-    import flax.linen as nn
-
+def test_patch_conv_equals_xla_convolution(size, kernel, stride, impl):
+    """PatchConv (slices + matmul, fast gradients inside lax.scan on XLA:CPU, or XLA's own
+    convolution) is nn.Conv: same parameter shapes and init, same SAME-padded outputs and
+    gradients as lax's convolution."""
     from hron_jax.models.encoders import RELU_INIT, PatchConv
 
     x = jax.random.normal(jax.random.PRNGKey(0), (3,) + size + (5,))
-    ours = PatchConv(6, kernel, stride)
+    ours = PatchConv(6, kernel, stride, impl=impl)
     ref = nn.Conv(6, (kernel, kernel), (stride, stride), padding="SAME", kernel_init=RELU_INIT)
     p_ours, p_ref = ours.init(jax.random.PRNGKey(1), x), ref.init(jax.random.PRNGKey(1), x)
     jax.tree.map(np.testing.assert_array_equal, p_ours, p_ref)
@@ -910,6 +910,20 @@ def test_patch_conv_equals_xla_convolution(size, kernel, stride):
     g_ours = jax.grad(loss(ours), argnums=(0, 1))(params, x)
     g_ref = jax.grad(loss(ref), argnums=(0, 1))(params, x)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-4), g_ours, g_ref)
+
+
+def test_conv_auto_is_patches_on_cpu_and_xla_convolution_on_gpu():
+    # ModelConfig.conv='auto': the gradient program lowered for the CPU has no convolution op
+    # (patches + matmul), lowered for a GPU it has convolutions and no patch concatenation.
+    from hron_jax.models.encoders import PatchConv
+
+    x = jnp.ones((2, 16, 16, 4))
+    conv = PatchConv(8, 4, 2)
+    params = conv.init(jax.random.PRNGKey(0), x)
+    traced = jax.jit(jax.grad(lambda p: jnp.sum(conv.apply(p, x) ** 2))).trace(params)
+    cpu, gpu = traced.lower().as_text(), traced.lower(lowering_platforms=("cuda",)).as_text()
+    assert "convolution" not in cpu and "concatenate" in cpu
+    assert "convolution" in gpu and "concatenate" not in gpu
 
 
 def test_take_rows_is_a_gather_with_a_matmul_gradient_on_gpu():

@@ -5,15 +5,21 @@
 #
 #   bash tools/gpu_bench.sh [SECONDS] [STAGE...]
 #     SECONDS  time box of the whole script (default 540)
-#     STAGE    any of (default: all, in this order)
+#     STAGE    any of (default: all, in this order; all of them take ~20 min, more than one 15-min
+#              lease: pick, e.g. `profile train32 trainpy`)
 #       env       bench env: physics, 128x128 render, env step at 1024 / 4096 / 8192 envs
 #       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
 #                 steps, 32x32 camera, 8 minibatches of 8192 (and its compile time)
 #       train32   bench train: that update as train.py runs it (CUDA graphs on): env steps/s
 #       train128  bench train: the same with the 128x128 camera and 32 minibatches of 2048 (8192
-#                 need 79 GB at 128x128)
+#                 need 79 GB at 128x128); convolutions as on a GPU by default (ModelConfig.conv auto:
+#                 XLA's / cuDNN)
+#       train128p the same with the CPU's patch convolutions (conv=patches), to weigh the two
+#       compile   bench compile at 1024 envs: compile seconds and HLO size per stage on this GPU
 #       trainpy   train.py as a user runs it (1024 envs x 16 steps, 8 minibatches, 2 updates,
 #                 no compile cache): init / chunk compile seconds and env steps/s from its log
+#       trainpy-na  trainpy with XLA:GPU autotuning off (--xla_gpu_autotune_level=0): its share of
+#                 the compile
 #
 # Device call (after ../shared/gpu/fetch-wheels.sh here; never set MUJOCO_GL=egl there):
 #   run(command="bash tools/gpu_bench.sh 540", carry=[".whl"], timeout_s=600)
@@ -23,7 +29,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env profile train32 train128 trainpy)
+((${#STAGES[@]})) || STAGES=(env profile train32 train128 train128p compile trainpy trainpy-na)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -38,6 +44,8 @@ box() {
 main() {
   setup || return 1
   local batch=(--num-envs 4096 --num-steps 16)
+  local user_run=(--task exploratory --num-envs 1024 --num-steps 16 --minibatches 8 --total-steps 32768
+    --log-every 1 --compile-cache none --no-progress)
   for s in "${STAGES[@]}"; do
     case $s in
       env) step "$(box 100)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
@@ -48,10 +56,13 @@ main() {
         --image-size 32 --repeats 2 ;;
       train128) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \
         --image-size 128 --repeats 2 ;;
-      trainpy) step "$(box 220)" python3 train.py --task exploratory --num-envs 1024 --num-steps 16 \
-        --minibatches 8 --total-steps 32768 --log-every 1 --compile-cache none --no-progress \
-        --out /tmp/gpu_bench_run ;;
-      *) echo "unknown stage $s (valid: env profile train32 train128 trainpy)" ;;
+      train128p) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \
+        --image-size 128 --repeats 2 --model-option conv=patches ;;
+      compile) step "$(box 200)" python3 -m hron_jax.bench compile --num-envs 1024 ;;
+      trainpy) step "$(box 220)" python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run ;;
+      trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
+        train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;
+      *) echo "unknown stage $s (valid: env profile train32 train128 train128p compile trainpy trainpy-na)" ;;
     esac
   done
 }

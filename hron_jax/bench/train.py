@@ -40,6 +40,8 @@ def train_config(a: argparse.Namespace, num_envs: int):
         args["distractors"] = True
     if a.image_size is not None:
         args["env_option"] = [f"image_size={a.image_size}"]
+    if a.model_option:
+        args["model_option"] = list(a.model_option)
     return config_from_args(args)
 
 
@@ -109,6 +111,9 @@ def add_args(p: argparse.ArgumentParser, single_num_envs: bool = False) -> None:
     p.add_argument("--minibatch-size", type=int, default=128)
     p.add_argument("--epochs", type=int, default=None, help="default: the task's PPO default")
     p.add_argument("--image-size", type=int, default=None, help="square camera (default: the task's, 32)")
+    p.add_argument(
+        "--model-option", action="append", metavar="NAME=VALUE", help="as train.py's, e.g. conv=xla"
+    )
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--distractors", action="store_true")
 

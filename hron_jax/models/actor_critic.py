@@ -56,7 +56,11 @@ class _ActorCriticCore(nn.Module):
         feats = []
         img = None
         conv = dict(
-            features=cfg.conv_features, kernels=cfg.conv_kernels, strides=cfg.conv_strides, fc=cfg.cnn_fc
+            features=cfg.conv_features,
+            kernels=cfg.conv_kernels,
+            strides=cfg.conv_strides,
+            fc=cfg.cnn_fc,
+            impl=cfg.conv,
         )
         if cfg.use_rgbd:
             img = ConvEncoder(**conv, name="rgbd_encoder")(_rgbd(obs))

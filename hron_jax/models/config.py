@@ -34,6 +34,10 @@ class ModelConfig:
             ResNet-50 softmax of the current frame; we use a learned softmax over the RGB-D embedding).
     Image / map / goal branches
         conv_features, conv_kernels, conv_strides: the 3 conv layers (SAME padding, ReLU).
+        conv: how they are computed (same parameters and outputs, encoders.PatchConv): 'patches'
+            (patch slices + one matmul: XLA:CPU runs a convolution's gradient ~30x slower inside
+            the minibatch scan), 'xla' (XLA's convolution: cuDNN on a GPU, no patch tensor, whose
+            size is k*k x the input's), or 'auto' (patches on a CPU, XLA's elsewhere).
         cnn_fc: widths of the 3 FC layers after flattening (RGB-D and metric-map branches).
         map_class_features: width of the learned embedding of the metric map's class channel
             (encoders.MapEncoder: a class id is a category, not a magnitude).
@@ -61,6 +65,7 @@ class ModelConfig:
     conv_features: tuple[int, int, int] = (32, 64, 64)
     conv_kernels: tuple[int, int, int] = (8, 4, 3)
     conv_strides: tuple[int, int, int] = (4, 2, 1)
+    conv: Literal["auto", "patches", "xla"] = "auto"
     cnn_fc: tuple[int, int, int] = (256, 128, 128)
     map_class_features: int = 8
     goal_fc: tuple[int, int, int] = (128, 128, 128)
@@ -82,6 +87,7 @@ class ModelConfig:
             ("pooling", ("task", "mean")),
             ("node_features", ("learned", "word_vectors")),
             ("goal_encoding", ("one_hot", "word_vector")),
+            ("conv", ("auto", "patches", "xla")),
         ):
             if getattr(self, field) not in allowed:
                 raise ConfigError(field, f"expected one of {allowed}, got {getattr(self, field)!r}")

@@ -64,27 +64,45 @@ def image_patches(x, k: int, s: int):
 
 
 class PatchConv(nn.Module):
-    """2-D convolution (SAME padding, HWIO kernel, bias) as patch extraction + one matmul.
+    """2-D convolution (SAME padding, HWIO kernel, bias), computed as `impl` says.
 
     Same parameters and outputs as nn.Conv(features, (k, k), (s, s), padding="SAME") (tested to
-    float rounding). Why not nn.Conv: XLA:CPU runs the *gradient* of a convolution ~30x slower
-    inside a while loop (measured: RGB-D encoder fwd+grad at batch 128, 444 ms per step in a
-    lax.scan vs 13 ms unrolled), and every PPO minibatch step runs inside lax.scan; as slices +
-    matmul the gradient costs 19 ms in the loop. f32[B, H, W, C] -> f32[B, H/s, W/s, features].
+    float rounding). impl 'patches': patch extraction + one matmul. Why: XLA:CPU runs the
+    *gradient* of a convolution ~30x slower inside a while loop (measured: RGB-D encoder fwd+grad
+    at batch 128, 444 ms per step in a lax.scan vs 13 ms unrolled), and every PPO minibatch step
+    runs inside lax.scan; as slices + matmul the gradient costs 19 ms in the loop. impl 'xla':
+    XLA's convolution (cuDNN on a GPU), which never builds the patch tensor (k*k times the input:
+    8.6 GB for the first layer of a 8192-sample minibatch of 128 x 128 RGB-D). impl 'auto': patches
+    on a CPU, XLA's convolution on any other platform (lax.platform_dependent, decided when the
+    program is lowered). f32[B, H, W, C] -> f32[B, H/s, W/s, features].
     """
 
     features: int
     kernel: int
     stride: int
     kernel_init: nn.initializers.Initializer = RELU_INIT
+    impl: str = "auto"
 
     @nn.compact
     def __call__(self, x):
         c = x.shape[-1]
         kernel = self.param("kernel", self.kernel_init, (self.kernel, self.kernel, c, self.features))
         bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
-        cols = image_patches(x, self.kernel, self.stride)
-        return cols @ kernel.reshape(-1, self.features) + bias
+
+        def patches(x, kernel):
+            return image_patches(x, self.kernel, self.stride) @ kernel.reshape(-1, self.features)
+
+        def xla(x, kernel):
+            s = (self.stride, self.stride)
+            return jax.lax.conv_general_dilated(
+                x, kernel, s, "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+            )
+
+        if self.impl == "auto":
+            y = jax.lax.platform_dependent(x, kernel, cpu=patches, default=xla)
+        else:
+            y = {"patches": patches, "xla": xla}[self.impl](x, kernel)
+        return y + bias
 
 
 class ConvEncoder(nn.Module):
@@ -92,19 +110,20 @@ class ConvEncoder(nn.Module):
 
     SAME padding keeps the encoder valid for any image size (small CPU images included); the
     flatten size follows from the static image shape. Convolutions are `PatchConv` (named Conv_i,
-    the parameter tree of nn.Conv layers).
+    the parameter tree of nn.Conv layers), computed as `impl` says (ModelConfig.conv).
     """
 
     features: Sequence[int]
     kernels: Sequence[int]
     strides: Sequence[int]
     fc: Sequence[int]
+    impl: str = "auto"
 
     @nn.compact
     def __call__(self, img):
         x = img if img.ndim == 4 else img[None]
         for i, (f, k, s) in enumerate(zip(self.features, self.kernels, self.strides)):
-            x = nn.relu(PatchConv(f, k, s, name=f"Conv_{i}")(x))
+            x = nn.relu(PatchConv(f, k, s, impl=self.impl, name=f"Conv_{i}")(x))
         out = MLP(self.fc)(x.reshape(x.shape[0], -1))
         return out if img.ndim == 4 else out[0]
 
@@ -145,6 +164,7 @@ class MapEncoder(nn.Module):
     strides: Sequence[int]
     fc: Sequence[int]
     class_channel: int = MAP_CLASS_CHANNEL
+    impl: str = "auto"
 
     @nn.compact
     def __call__(self, m):
@@ -154,7 +174,7 @@ class MapEncoder(nn.Module):
         emb = Embed(self.num_classes, self.class_features, name="class_embed")(cls)
         rest = jnp.concatenate([m[..., :c], m[..., c + 1 :]], axis=-1).astype(emb.dtype)
         x = jnp.concatenate([rest, jnp.where(observed, emb, 0.0)], axis=-1)
-        return ConvEncoder(self.features, self.kernels, self.strides, self.fc, name="conv")(x)
+        return ConvEncoder(self.features, self.kernels, self.strides, self.fc, self.impl, name="conv")(x)
 
 
 def _node_arrays(graph):
