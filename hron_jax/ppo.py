@@ -30,8 +30,11 @@ Termination vs truncation (as in Brax, but exact): an env step that truncates (t
 so the value of the next obs (already the reset obs) is not used; instead the rollout evaluates the
 value of the pre-reset final obs (``env.final_obs(state)``: AutoResetWrapper's info['final_obs'], or
 what a self-resetting env renders on demand) and GAE bootstraps from it.
-That extra forward pass sits in a lax.cond on "any env truncated", so it costs nothing in the steps
-where no env truncates (under vmap over seeds the cond becomes a select and always runs).
+That extra forward pass is a second pass of the rollout's one model call site (`rollout`: a
+while loop of 1 or 2 passes, in the iteration after the truncating step), so it costs nothing in
+the steps where no env truncates (under vmap over seeds the render of the final obs turns into a
+select and always runs), and the training program compiles the model once for acting, last value
+and bootstrap (and once more for the update's forward + backward).
 
 metrics (one entry per update, each f32[n_updates]): the episode metrics (envs.base.EPISODE_METRICS:
 'success', 'spl', 'episode_length', 'path_length', 'return') are means over the episodes completed
@@ -150,6 +153,9 @@ class PPO(NamedTuple):
     update_chunk: Callable  # (RunnerState, n_updates: static int) -> (RunnerState, metrics)
     train: Callable  # rng -> (RunnerState, metrics)
     evaluate: Callable  # (params, rng, num_steps: static int, greedy: static bool) -> metrics
+    # (params, env_state, rng, num_steps: static, greedy: static) -> (env_state, rng, Transition,
+    # last_value): the rollout of one update (obs has num_steps + 1 rows)
+    rollout: Callable
     config: PPOConfig
 
 
@@ -221,24 +227,46 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         )
 
     def rollout(params, env_state, rng, num_steps, greedy=False):
+        """num_steps env steps; returns (env_state, rng, Transition [T, B] with obs [T + 1, B],
+        last_value [B]). The model runs at ONE call site (so the training program compiles it
+        once outside the update): in every iteration of an unroll with policy_on_final, first on
+        the real last observation of the episodes the previous step truncated (only when there
+        are any; their bootstrap value), then on the current observation (the policy's action and
+        value). Iteration T only evaluates: the last value, and the bootstrap of step T - 1."""
+        num_actions = env.num_actions
+
         def policy(state, key):
-            logits, value = apply(params, state.obs)
+            truncation = state.info['truncation']  # of the step that produced `state`
+
+            def evaluate(carry):
+                p, final_value, _, _ = carry
+                obs = jax.lax.cond(p == 0, lambda: v_final_obs(state), lambda: state.obs)
+                logits, value = apply(params, obs)
+                return p + 1, jnp.where(p == 0, value * truncation, final_value), logits, value
+
+            zeros = jnp.zeros_like(truncation)
+            first = jnp.where(jnp.any(truncation > 0), 0, 1)
+            init = (first, zeros, jnp.zeros(zeros.shape + (num_actions,), jnp.float32), zeros)
+            _, final_value, logits, value = jax.lax.while_loop(lambda c: c[0] < 2, evaluate, init)
             action = jnp.argmax(logits, -1) if greedy else jax.random.categorical(key, logits)
             log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], -1)[:, 0]
-            return action, {'logits': logits, 'log_prob': log_prob, 'value': value}
+            extras = {'logits': logits, 'log_prob': log_prob, 'value': value, 'prev_final_value': final_value}
+            return action, extras
 
-        def record(state, action, extras, nxt):
-            # Bootstrap value of truncated episodes, computed only in steps where one truncates.
-            truncation = nxt.info['truncation']
-            final_value = jax.lax.cond(
-                jnp.any(truncation > 0),
-                lambda: apply(params, v_final_obs(nxt))[1] * truncation,
-                lambda: jnp.zeros_like(truncation),
-            )
-            return {'obs': state.obs, 'final_value': final_value}
-
-        env_state, rng, traj = unroll(v_step, env_state, policy, rng, num_steps, record=record)
-        return env_state, rng, Transition(**traj)
+        env_state, rng, traj = unroll(
+            v_step,
+            env_state,
+            policy,
+            rng,
+            num_steps,
+            record=lambda s, *_: {'obs': s.obs},
+            policy_on_final=True,
+        )
+        obs = traj.pop('obs')  # T + 1 rows; the learner samples only from the first T
+        final_value = traj.pop('prev_final_value')[1:]  # step t's, evaluated on the state after it
+        last_value = traj['value'][num_steps]
+        traj = jax.tree.map(lambda x: x[:num_steps], traj)
+        return env_state, rng, Transition(obs=obs, final_value=final_value, **traj), last_value
 
     def loss_fn(params, mb: Transition, adv, target, kl_coeff):
         logits, value = apply(params, mb.obs)
@@ -279,8 +307,9 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
     grad_fn = jax.grad(loss_fn, has_aux=True)
 
     def one_update(runner: RunnerState, _):
-        env_state, rng, traj = rollout(runner.params, runner.env_state, runner.rng, config.num_steps)
-        _, last_value = apply(runner.params, env_state.obs)
+        env_state, rng, traj, last_value = rollout(
+            runner.params, runner.env_state, runner.rng, config.num_steps
+        )
         adv, target = compute_gae(
             traj.reward,
             traj.value,
@@ -294,9 +323,10 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
 
         if config.advantage_norm == 'batch':  # once over the whole rollout, as RLlib does
             adv = (adv - adv.mean()) / jnp.maximum(adv.std(), 1e-4)
-        # Flatten [T, B] -> [T*B]; the metrics are not needed by the loss.
+        # Flatten [T, B] -> [T*B] (obs: [(T+1)*B], of which the permutation takes only the first
+        # T*B rows, so the extra row is never copied out); the metrics are not needed by the loss.
         batch = (traj._replace(metrics={}), adv, target)
-        batch = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), batch)
+        batch = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)
 
         def epoch(carry, _):
             params, opt_state, rng = carry
@@ -350,10 +380,12 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         """Runs the policy (no learning) on fresh envs; episode means as in the training metrics."""
         rng, k_env = jax.random.split(rng)
         env_state = v_reset(jax.random.split(k_env, config.num_envs))
-        _, _, traj = rollout(params, env_state, rng, num_steps, greedy=greedy)
+        _, _, traj, _ = rollout(params, env_state, rng, num_steps, greedy=greedy)
         return _masked_episode_means(traj.metrics)
 
-    return PPO(init=init, update_chunk=update_chunk, train=train, evaluate=evaluate, config=config)
+    return PPO(
+        init=init, update_chunk=update_chunk, train=train, evaluate=evaluate, rollout=rollout, config=config
+    )
 
 
 def make_train(config: PPOConfig, env, network) -> Callable:

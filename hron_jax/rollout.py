@@ -2,7 +2,8 @@
 index of its trajectories. Users: hron_jax.ppo (a vmapped batch of auto-resetting envs),
 evaluation and analysis (one episodic env, vmapped over episodes), the navigation tests.
 
-    state, key, traj = unroll(step, state, policy, key, num_steps, record=None, actions=None)
+    state, key, traj = unroll(step, state, policy, key, num_steps, record=None, actions=None,
+                              policy_on_final=False)
     finished, end = episode_ends(traj['done'])                  # numpy, after device_get
     action = random_policy(env, state, rng)                     # uniform reference policy
 
@@ -16,6 +17,11 @@ record: optional ``record(state, action, extras, next_state) -> dict`` of furthe
     (e.g. the observation acted on, the agent pose, a bootstrap value).
 actions: optional scripted actions i32[num_steps, ...] overriding the policy wherever >= 0 (the
     policy still runs, so its extras describe its own choice, not the scripted one).
+policy_on_final: also run the policy (and record) on the final state, in the same loop: traj gets
+    num_steps + 1 rows, and row num_steps holds the policy's extras on the state after the last
+    step (e.g. PPO's bootstrap value), while its step fields describe no step (the env is not
+    stepped there: they repeat the final state's own) and are to be dropped. One loop means one
+    call site of the policy, so a program that needs that last pass compiles the policy once.
 
 traj: a flat dict of arrays with a leading [num_steps] axis: 'action', 'reward', 'done',
 'truncation' (next_state.info['truncation']), 'metrics' (next_state.metrics), then the policy's
@@ -42,16 +48,21 @@ def unroll(
     *,
     record: Callable | None = None,
     actions=None,
+    policy_on_final: bool = False,
 ):
     """Run `num_steps` steps; returns (final state, final key, traj). See the module docstring."""
 
-    def body(carry, scripted):
+    def body(carry, xs):
         state, key = carry
+        i, scripted = xs
         key, k = jax.random.split(key)
         action, extras = policy(state, k)
         if scripted is not None:
             action = jnp.where(scripted >= 0, scripted, action).astype(jnp.int32)
-        nxt = step(state, action)
+        if policy_on_final:
+            nxt = jax.lax.cond(i < num_steps, step, lambda s, _: s, state, action)
+        else:
+            nxt = step(state, action)
         out = dict(
             action=action,
             reward=nxt.reward,
@@ -67,8 +78,11 @@ def unroll(
             out.update(more)
         return (nxt, key), out
 
-    xs = None if actions is None else jnp.asarray(actions, jnp.int32)
-    (state, key), traj = jax.lax.scan(body, (state, key), xs, length=num_steps)
+    length = num_steps + 1 if policy_on_final else num_steps
+    scripted = None if actions is None else jnp.asarray(actions, jnp.int32)
+    if scripted is not None and policy_on_final:
+        scripted = jnp.concatenate([scripted, jnp.full_like(scripted[:1], -1)])
+    (state, key), traj = jax.lax.scan(body, (state, key), (jnp.arange(length), scripted), length=length)
     return state, key, traj
 
 

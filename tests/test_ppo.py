@@ -261,6 +261,38 @@ def test_ppo_learns_gymnax_corridor_with_truncation():
     assert np.nanmean(length[-5:]) < 9.0
 
 
+def test_rollout_values_bootstraps_and_last_value_match_a_step_loop():
+    # PPO's rollout runs the model at one call site (a 1-2 pass loop per step, one more pass after
+    # the last step); here every value it reports is recomputed from a plain loop over the same
+    # actions: V(obs_t), V(real last obs) on truncating steps (0 elsewhere), V(obs_T).
+    env = GymnaxWrapper(Corridor(), CorridorParams(8), max_steps=6)
+    cfg = PPOConfig(num_envs=4, num_steps=14, total_timesteps=4 * 14, num_minibatches=2)
+    ppo = make_ppo(cfg, env, MLP(2))
+    runner = ppo.init(jax.random.PRNGKey(0))
+    start = runner.env_state
+    end, _, traj, last_value = jax.jit(ppo.rollout, static_argnums=(3, 4))(
+        runner.params, start, jax.random.PRNGKey(1), 14, False
+    )
+    ppo_env = AutoResetWrapper(env)
+    v_step, v_final_obs = jax.jit(jax.vmap(ppo_env.step)), jax.jit(jax.vmap(ppo_env.final_obs))
+    value = lambda obs: np.asarray(MLP(2).apply(runner.params, obs)[1])  # noqa: E731
+    state = start
+    assert traj.obs.shape[0] == 15 and traj.value.shape == (14, 4)
+    for t in range(14):
+        np.testing.assert_array_equal(np.asarray(traj.obs[t]), np.asarray(state.obs))
+        np.testing.assert_allclose(traj.value[t], value(state.obs), rtol=1e-5, atol=1e-6)
+        state = v_step(state, traj.action[t])
+        trunc = np.asarray(state.info['truncation'])
+        np.testing.assert_array_equal(traj.truncation[t], trunc)
+        np.testing.assert_allclose(
+            traj.final_value[t], trunc * value(v_final_obs(state)), rtol=1e-5, atol=1e-6
+        )
+    assert np.asarray(traj.truncation).sum() >= 4  # the bootstrap branch ran (6-step limit, 14 steps)
+    np.testing.assert_array_equal(np.asarray(traj.obs[14]), np.asarray(state.obs))
+    np.testing.assert_allclose(last_value, value(state.obs), rtol=1e-5, atol=1e-6)
+    jax.tree.map(np.testing.assert_array_equal, end.obs, state.obs)
+
+
 # --- determinism: vmapped seeds, chunks ---------------------------------------------------------
 SMALL = PPOConfig(
     num_envs=8, num_steps=2, total_timesteps=8 * 2 * 4, update_epochs=2, num_minibatches=2, lr=1e-3

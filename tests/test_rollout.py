@@ -95,6 +95,27 @@ def test_unroll_vmapped_batch_and_truncation():
     np.testing.assert_array_equal(np.asarray(traj['truncation']), want)
 
 
+def test_policy_on_final_adds_one_policy_row_and_no_step():
+    env = AutoResetWrapper(Walk())
+    states = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(2), 4))
+    key = jax.random.PRNGKey(3)
+    record = lambda s, a, e, n: {'before': s.inner}  # noqa: E731
+    last, _, traj = unroll(jax.vmap(env.step), states, policy, key, 10, record=record)
+    last_f, key_f, traj_f = jax.jit(
+        lambda s, k: unroll(jax.vmap(env.step), s, policy, k, 10, record=record, policy_on_final=True)
+    )(states, key)
+    assert traj_f['action'].shape == (11, 4) and traj_f['before'].shape == (11, 4)
+    for k in ('action', 'reward', 'done', 'truncation', 'seen', 'before'):  # the 10 steps unchanged
+        np.testing.assert_array_equal(np.asarray(traj_f[k][:10]), np.asarray(traj[k]), err_msg=k)
+    jax.tree.map(np.testing.assert_array_equal, last_f, last)  # the env was not stepped again
+    # row 10: the policy and record saw the final state
+    np.testing.assert_array_equal(np.asarray(traj_f['seen'][10]), np.asarray(last.obs[:, 0]))
+    np.testing.assert_array_equal(np.asarray(traj_f['before'][10]), np.asarray(last.inner))
+    for _ in range(11):
+        key, _ = jax.random.split(key)
+    np.testing.assert_array_equal(np.asarray(key_f), np.asarray(key))
+
+
 def test_record_hook_and_field_clash():
     env = Walk()
     record = lambda s, a, e, n: {'before': s.inner, 'after': n.inner, 'echo': e['seen']}
