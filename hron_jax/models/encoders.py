@@ -72,7 +72,7 @@ class PatchConv(nn.Module):
     at batch 128, 444 ms per step in a lax.scan vs 13 ms unrolled), and every PPO minibatch step
     runs inside lax.scan; as slices + matmul the gradient costs 19 ms in the loop. impl 'xla':
     XLA's convolution (cuDNN on a GPU), which never builds the patch tensor (k*k times the input:
-    8.6 GB for the first layer of a 8192-sample minibatch of 128 x 128 RGB-D). impl 'auto': patches
+    8.6 GB for the first layer of an 8192-sample minibatch of 128 x 128 RGB-D). impl 'auto': patches
     on a CPU, XLA's convolution on any other platform (lax.platform_dependent, decided when the
     program is lowered). f32[B, H, W, C] -> f32[B, H/s, W/s, features].
     """
