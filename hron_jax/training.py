@@ -7,9 +7,10 @@ Program (`Programs`, built once per program-relevant config and cached in-proces
     init(keys u32[S, 2]) -> RunnerState with a leading seed axis S on every leaf
     chunk(runner, n: static) -> (runner, metrics {name: f32[S, n]})
 S = num_seeds seeds train in one program (jax.vmap of hron_jax.ppo over the RunnerState; with
-S = 1 the unvmapped PPO runs and the axis is added outside, which keeps PPO's lax.cond on
-truncation a real branch). Seed i uses jax.random.PRNGKey(seed + i), so seed i of a
-multi-seed run is the single-seed run with --seed seed+i.
+S = 1 the unvmapped PPO runs and the axis is added outside, which keeps the branches of PPO's
+truncation bootstrap (the rollout's 1-2 pass loop, the final-obs render under a cond) real).
+Seed i uses jax.random.PRNGKey(seed + i), so seed i of a multi-seed run is the single-seed run
+with --seed seed+i.
 Env state leaves are [S, num_envs, ...] and sharded over a 1-D mesh of all devices, those of every
 process in a multi-host job (hron_jax.multihost) (axis 'devices', NamedSharding P(None, 'devices'));
 params, optimiser state and rng are replicated.
