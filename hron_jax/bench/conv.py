@@ -37,7 +37,7 @@ def bench_conv(batch: int = 128, size: int = 32, steps: int = 8, repeats: int = 
         def __call__(self, x):
             for f, k, s in layers:
                 conv = (
-                    PatchConv(f, k, s)
+                    PatchConv(f, k, s, impl="patches")
                     if self.patch
                     else nn.Conv(f, (k, k), (s, s), padding="SAME", kernel_init=RELU_INIT)
                 )
