@@ -15,6 +15,8 @@
 #                 need 79 GB at 128x128); convolutions as on a GPU by default (ModelConfig.conv auto:
 #                 XLA's / cuDNN)
 #       train128p the same with the CPU's patch convolutions (conv=patches), to weigh the two
+#       train32bf train32 with the GNN in bfloat16 (gnn_dtype=bfloat16: bf16 k / q / v tables)
+#       profilebf profile with gnn_dtype=bfloat16: where the update's time goes then
 #       compile   bench compile at 1024 envs: compile seconds and HLO size per stage on this GPU
 #       trainpy   train.py as a user runs it (1024 envs x 16 steps, 8 minibatches, 2 updates,
 #                 no compile cache): init / chunk compile seconds and env steps/s from its log
@@ -29,7 +31,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env profile train32 train128 train128p compile trainpy trainpy-na)
+((${#STAGES[@]})) || STAGES=(env profile train32 train32bf profilebf train128 train128p compile trainpy trainpy-na)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -54,6 +56,10 @@ main() {
         --image-size 32 --repeats 2 ;;
       train32) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 ;;
+      train32bf) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
+        --image-size 32 --repeats 2 --model-option gnn_dtype=bfloat16 ;;
+      profilebf) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
+        --image-size 32 --repeats 2 --model-option gnn_dtype=bfloat16 ;;
       train128) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \
         --image-size 128 --repeats 2 ;;
       train128p) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \
@@ -62,7 +68,7 @@ main() {
       trainpy) step "$(box 220)" python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
         train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;
-      *) echo "unknown stage $s (valid: env profile train32 train128 train128p compile trainpy trainpy-na)" ;;
+      *) echo "unknown stage $s (valid: env profile train32 train32bf profilebf train128 train128p compile trainpy trainpy-na)" ;;
     esac
   done
 }

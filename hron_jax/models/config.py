@@ -32,6 +32,10 @@ class ModelConfig:
             'word_vectors' (Yang et al.: frozen category word vectors + image code).
         yang_image_code: width of the softmax image code appended to every node (Yang et al. used a
             ResNet-50 softmax of the current frame; we use a learned softmax over the RGB-D embedding).
+        gnn_dtype: compute dtype of the GNN layers (gnn.HGTConv / GCNConv): 'float32' (default, the
+            paper's) or 'bfloat16', which halves the bytes of the per-node and per-edge tables
+            (keys, values, queries: most of the HGT's memory traffic on a GPU). Parameters, the
+            attention scores and softmax, the message sums and the pooled output stay float32.
     Image / map / goal branches
         conv_features, conv_kernels, conv_strides: the 3 conv layers (SAME padding, ReLU).
         conv: how they are computed (same parameters and outputs, encoders.PatchConv): 'patches'
@@ -61,6 +65,7 @@ class ModelConfig:
     pool_flag: bool = True
     node_features: Literal["learned", "word_vectors"] = "learned"
     yang_image_code: int = 32
+    gnn_dtype: Literal["float32", "bfloat16"] = "float32"
 
     conv_features: tuple[int, int, int] = (32, 64, 64)
     conv_kernels: tuple[int, int, int] = (8, 4, 3)
@@ -88,6 +93,7 @@ class ModelConfig:
             ("node_features", ("learned", "word_vectors")),
             ("goal_encoding", ("one_hot", "word_vector")),
             ("conv", ("auto", "patches", "xla")),
+            ("gnn_dtype", ("float32", "bfloat16")),
         ):
             if getattr(self, field) not in allowed:
                 raise ConfigError(field, f"expected one of {allowed}, got {getattr(self, field)!r}")

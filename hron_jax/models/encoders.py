@@ -267,12 +267,15 @@ class SceneGraphEncoder(nn.Module):
             relation = edge_relations(node_type, senders, receivers, edge_type)
         for i in range(cfg.gnn_layers):
             if cfg.gnn == "hgt":
-                h = HGTConv(cfg.hidden, cfg.heads, softmax=cfg.hgt_softmax, name=f"hgt_{i}")(
-                    h, node_type, mask, senders, receivers, relation, edge_mask
+                conv = HGTConv(
+                    cfg.hidden, cfg.heads, softmax=cfg.hgt_softmax, dtype=cfg.gnn_dtype, name=f"hgt_{i}"
                 )
+                h = conv(h, node_type, mask, senders, receivers, relation, edge_mask)
             else:
-                h = GCNConv(cfg.hidden, name=f"gcn_{i}")(h, mask, senders, receivers, edge_mask)
+                conv = GCNConv(cfg.hidden, dtype=cfg.gnn_dtype, name=f"gcn_{i}")
+                h = conv(h, mask, senders, receivers, edge_mask)
             h = nn.relu(h)
+        h = h.astype(jnp.float32)  # pooling and everything after it in float32 (gnn_dtype)
 
         pool = (lambda f: jax.vmap(f)) if mask.ndim == 2 else (lambda f: f)  # noqa: E731
         if cfg.pooling == "task":

@@ -51,6 +51,16 @@ def _bias_uniform(fan_in: int):
     return lambda key, shape, dtype=jnp.float32: jax.random.uniform(key, shape, dtype, -bound, bound)
 
 
+def _f32(a):
+    """float32 view of a (the identity on float32, so the default dtype's numbers are unchanged)."""
+    return a.astype(jnp.float32)
+
+
+def _dot_f32(a, b):
+    """sum(a * b, -1) in float32: with bfloat16 tables the products and the sum are float32."""
+    return jnp.sum(_f32(a) * _f32(b), axis=-1)
+
+
 def live_edges(node_mask, senders, receivers, edge_mask):
     """bool[E]: edge is live and both endpoints are live."""
     return edge_mask & node_mask[senders] & node_mask[receivers]
@@ -239,20 +249,19 @@ def _hgt(
     k_e = table[base * s + slot]  # [E, H, D]
     v_e = table[(base + h * c) * s + slot]
     q_e = q[pd]
-    score = jnp.sum(q_e * k_e, axis=-1) * take_rows(params["p_rel"], rel) / math.sqrt(d)
+    score = _dot_f32(q_e, k_e) * take_rows(params["p_rel"], rel) / math.sqrt(d)
     alpha = masked_segment_softmax(score, live, *_softmax_groups(pd, rel, rows, r, softmax))
     # where() rather than a product with alpha = 0: a non-finite value on a dead row must not leak.
-    msg = jnp.where(live[:, None, None], v_e * alpha[..., None], 0.0)
+    msg = jnp.where(live[:, None, None], _f32(v_e) * alpha[..., None], 0.0)
     agg = jax.ops.segment_sum(msg, pd, rows).reshape(nb, c, f)
 
-    out = _block_dense(
-        jax.nn.gelu(agg, approximate=False), blk_type, params["out_kernel"], params["out_bias"]
-    )
+    a = jax.nn.gelu(agg, approximate=False).astype(x.dtype)
+    out = _block_dense(a, blk_type, params["out_kernel"], params["out_bias"])
     if f_in == f:
         gate = jax.nn.sigmoid(take_rows(params["skip"], blk_type))[:, None, None]
         out = gate * out + (1.0 - gate) * xb
     out = out.reshape(rows, f)[pos]
-    return jnp.where(node_mask[:, None], out, 0.0), alpha
+    return jnp.where(node_mask[:, None], out, 0.0).astype(x.dtype), alpha
 
 
 def _hgt_single(
@@ -290,15 +299,15 @@ def _hgt_single(
     k_all = jnp.einsum("nhd,rhde->nrhe", k, params["k_rel"]).reshape(n * r, h, d)
     v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
     row = senders * r + rel
-    score = jnp.sum(q[receivers] * k_all[row], axis=-1) * take_rows(params["p_rel"], rel) / math.sqrt(d)
+    score = _dot_f32(q[receivers], k_all[row]) * take_rows(params["p_rel"], rel) / math.sqrt(d)
     alpha = masked_segment_softmax(score, live, *_softmax_groups(receivers, rel, n, r, softmax))
-    msg = jnp.where(live[:, None, None], v_all[row] * alpha[..., None], 0.0)
+    msg = jnp.where(live[:, None, None], _f32(v_all[row]) * alpha[..., None], 0.0)
     agg = jax.ops.segment_sum(msg, receivers, n).reshape(n, f)
-    out = typed(jax.nn.gelu(agg, approximate=False), params["out_kernel"], params["out_bias"])
+    out = typed(jax.nn.gelu(agg, approximate=False).astype(x.dtype), params["out_kernel"], params["out_bias"])
     if f_in == f:
-        gate = jax.nn.sigmoid(onehot @ params["skip"])[:, None]
+        gate = jax.nn.sigmoid(onehot.astype(jnp.float32) @ params["skip"])[:, None]
         out = gate * out + (1.0 - gate) * x0
-    return jnp.where(node_mask[:, None], out, 0.0), alpha
+    return jnp.where(node_mask[:, None], out, 0.0).astype(x.dtype), alpha
 
 
 def _hgt_batch(
@@ -349,7 +358,10 @@ class HGTConv(nn.Module):
         i32[E], relation i32[E] (`edge_relations`, -1 = no relation), edge_mask bool[E]; or a
         batch of graphs with a leading axis on every input (x f32[B, N, F_in], ..., senders
         i32[B, E]), which runs as one disjoint-union graph (fast path, see Cost).
-    Output: f32[(B,) N, features]. Sows the attention alpha f32[(B,) E, H] (0 on dead edges) as
+    dtype: compute dtype ('float32' or 'bfloat16', ModelConfig.gnn_dtype): x, the kernels and biases
+        and so the k / q / v tables and their per-edge gathers take it; scores, softmax and the
+        message sum are float32, parameters float32.
+    Output: [(B,) N, features] in dtype. Sows the attention alpha f32[(B,) E, H] (0 on dead edges) as
     ('attention', 'alpha'), collected only when the caller makes 'attention' mutable (and never
     during init, so `init` returns parameters only, valid for single and batched apply). The shape
     is the same for both softmax modes, but not the normalisation: under 'joint' the alphas of
@@ -387,6 +399,7 @@ class HGTConv(nn.Module):
     num_node_types: int = gt.NUM_NODE_TYPES
     num_relations: int = gt.NUM_RELATIONS
     softmax: str = "joint"
+    dtype: str = "float32"  # compute dtype (ModelConfig.gnn_dtype); parameters are float32
 
     @nn.compact
     def __call__(self, x, node_type, node_mask, senders, receivers, relation, edge_mask):
@@ -420,6 +433,11 @@ class HGTConv(nn.Module):
             out_bias=out_bias,
             skip=skip,
         )
+        # Kernels, biases and the node features take the compute dtype; p_rel and skip scale
+        # float32 scores and the output mix, so they stay float32.
+        dt = jnp.dtype(self.dtype)
+        params = {k: v if k in ("p_rel", "skip") else v.astype(dt) for k, v in params.items()}
+        x = x.astype(dt)
         run = _hgt_batch if x.ndim == 3 else _hgt_single
         out, alpha = run(
             params,
@@ -449,16 +467,18 @@ class GCNConv(nn.Module):
     (the receiver side, PyG's source_to_target flow). Dead nodes output 0.
 
     Inputs: x f32[N, F_in], node_mask bool[N], senders/receivers i32[E], edge_mask bool[E], or a
-    batch with a leading axis on each. Output: f32[(B,) N, features]. Parameters: kernel
-    [F_in, features] (glorot), bias [features] (0).
+    batch with a leading axis on each. Output: [(B,) N, features] in dtype (x W in dtype, the
+    normalised sums float32). Parameters: kernel [F_in, features] (glorot), bias [features] (0).
     """
 
     features: int
+    dtype: str = "float32"  # compute dtype of x W (ModelConfig.gnn_dtype); sums stay float32
 
     @nn.compact
     def __call__(self, x, node_mask, senders, receivers, edge_mask):
         kernel = self.param("kernel", nn.initializers.glorot_uniform(), (x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        kernel, x = kernel.astype(self.dtype), x.astype(self.dtype)
         if x.ndim == 3:  # a batch of graphs: [B, N, F_in], [B, N], [B, E] ...
             return jax.vmap(_gcn, in_axes=(None, None, 0, 0, 0, 0, 0))(
                 kernel, bias, x, node_mask, senders, receivers, edge_mask
@@ -471,14 +491,14 @@ def _gcn(kernel, bias, x, node_mask, senders, receivers, edge_mask):
     n = x.shape[0]
     hx = x @ kernel
     live = live_edges(node_mask, senders, receivers, edge_mask) & (senders != receivers)
-    w = live.astype(hx.dtype)
-    loop = node_mask.astype(hx.dtype)
+    w = live.astype(jnp.float32)
+    loop = node_mask.astype(jnp.float32)
     deg = jax.ops.segment_sum(w, receivers, n) + loop
     # deg is 0 only for dead nodes; guard the rsqrt so neither value nor gradient is inf.
     dis = jnp.where(deg > 0, jax.lax.rsqrt(jnp.where(deg > 0, deg, 1.0)), 0.0)
     norm = dis[senders] * w * dis[receivers]
-    msg = jnp.where(live[:, None], norm[:, None] * hx[senders], 0.0)  # no 0 * inf leaks
+    msg = jnp.where(live[:, None], norm[:, None] * _f32(hx[senders]), 0.0)  # no 0 * inf leaks
     out = jax.ops.segment_sum(msg, receivers, n)
-    out = out + (dis * dis * loop)[:, None] * hx
+    out = out + (dis * dis * loop)[:, None] * _f32(hx)
     out = out + bias
-    return jnp.where(node_mask[:, None], out, 0.0)
+    return jnp.where(node_mask[:, None], out, 0.0).astype(x.dtype)
