@@ -43,17 +43,31 @@ lies in the footprint and on the column's 2D ray). Per column and per geom type 
 candidates with smallest t_enter (`lax.top_k`, static shapes), then run the exact 3D kernel on
 H x K pairs per column instead of H x G. Certificate: if more than K geoms passed in a column, the
 dropped ones all have t_enter >= E, the largest kept t_enter; a ray whose found hit is at depth <= E
-is therefore exact, and any other ray in an overflowing column counts in `uncertain`. With K large
-enough for the scene (the tests check house views give uncertain == 0 and agree with mj_ray), the
+is therefore exact, and any other ray in an overflowing column counts in `uncertain`. With K large enough
+for the scene (the tests check house views give uncertain == 0 and agree with mj_ray), the
 kernel is exact; `uncertain > 0` says K is too small for that view. Nonzero pitch is supported (the
 projection is then onto the tilted camera's X-Z plane); roll is not. Spheres and capsules are
 culled the same way when a scene has more of them than k_sphere / k_capsule, else all are tested.
 
-Measured on scenes/house.xml (281 boxes; 32 x 32, 120 deg, max_depth 10 m): boxes passing the
+Row bands: a column's rows are split into `row_bands` bands (the last one padded), and each band
+keeps the `k_band` of the column's K candidates with the smallest t_enter whose rows it may hold: a
+hit of geom g in the column lies in its footprint interval [t_enter, t_exit] and in its bounding
+box's vertical extent [Ylo, Yhi] (camera Y), so its row's slope y = Y / t is within [min, max] of
+Y / t over those intervals. The exact kernel then runs on H x k_band pairs per column. The
+certificate composes: E of a band is the smaller of the column's and the band's. (Occlusion
+culling, i.e. dropping candidates behind a wall that covers the band, was built and measured: with
+a nearest-first selection of static size it never changes the work nor what is certified, since an
+occluded candidate is kept only when every nearer one is, and then E is past every band's hit.)
+
+Measured on scenes/house.xml (281 boxes then, 311 now; 32 x 32, 120 deg, max_depth 10 m): boxes passing the
 column test per column: mean 8.7, p99 23, max 43 over 300 random poses (inside furniture included).
 k_box = 32 (default): 0 uncertain rays in 108 room-centre views, a few in 0.9% of random-pose frames
-(8e-5 of all rays); k_box = 48: none in 320 random frames. CPU cost at batch 64 (2-core EPYC,
-shared): ~50 ms per batch with culling vs ~240 ms testing every geom and ~950 ms with mjx.ray.
+(8e-5 of all rays); k_box = 48: none in 320 random frames. Per band (8 bands of 4 rows, 64 random
+in-room poses) 2.2 candidates on average, p99 12: k_band = 8 (default) leaves 11 uncertain rays of
+65,536 (10 with bands off); at 128x128 (bands of 16 rows), 23 of 262,144 in 16 frames (13). CPU cost at batch 64 (2-core EPYC, shared): ~50 ms per batch with
+culling vs ~240 ms testing every geom and ~950 ms with mjx.ray; the row bands took the culled
+kernel from 32.3 to 27.9 ms per 64 frames at 32x32 and from 115.7 to 78.5 ms per 16 frames at
+128x128 (2-core Xeon, same process; where both certify, depths and geoms are identical).
 XLA:CPU traps met on the way (each cost ~5-10x): components as separate arrays, not trailing axes
 of size 3; min and argmin as one variadic reduce; top_k values used as a whole slice (see
 render_geoms); the column scores materialised once (optimization_barrier).
@@ -96,6 +110,8 @@ class CameraConfig:
     k_box: int = 32  # per-column candidates kept per geom type (see module docstring)
     k_sphere: int = 8
     k_capsule: int = 8
+    row_bands: int = 8  # a column's rows are culled again in this many bands (see module docstring)
+    k_band: int = 8  # candidates kept per band, out of the column's
     ambient: float = 0.35  # Lambert shading: ambient + (1 - ambient) * max(0, n . l)
     light_dir: tuple = (0.3, 0.2, 1.0)  # world direction towards a distant light (plus a headlight)
 
@@ -296,6 +312,12 @@ class Camera:
         self._col_x = self._dirs_cam[0, :, 0]  # (W,) X slope of each column
         self._row_y = self._dirs_cam[:, 0, 1]  # (H,) Y slope of each row
         self._row_y_max = float(np.abs(self._row_y).max())
+        # row bands: the last band is padded by repeating the last row (its extra rows are dropped)
+        rows = -(-cfg.height // max(1, min(cfg.row_bands, cfg.height)))
+        nb = -(-cfg.height // rows)
+        band_y = np.concatenate([self._row_y, np.full(nb * rows - cfg.height, self._row_y[-1])])
+        self._band_y = band_y.reshape(nb, rows).astype(np.float32)  # (nb, R) row slopes
+        self._band_lo, self._band_hi = self._band_y.min(1), self._band_y.max(1)  # (nb,)
         if cfg.backend == "mjx":
             self.mjx_model = mjx_model if mjx_model is not None else mjx.put_model(m)
         light = np.asarray(cfg.light_dir, np.float64)
@@ -333,39 +355,39 @@ class Camera:
         # every geom in camera coordinates: centre c (G, 3) and axes r[g, a, i] = camera comp a of axis i
         c_cam = (xpos - o) @ rot
         r_cam = jnp.einsum("ja,gji->gai", rot, xmat)
-        X = jnp.asarray(self._col_x)[:, None, None]  # (W, 1, 1) column slope
-        Y = jnp.asarray(self._row_y)[None, :, None]  # (1, H, 1) row slope
+        nb, rows = self._band_y.shape
+        X = jnp.asarray(self._col_x)[:, None, None, None]  # (W, 1, 1, 1) column slope
+        Y = jnp.asarray(self._band_y)[None, :, :, None]  # (1, nb, R, 1) row slope per band
 
-        best_t = jnp.full((cfg.width, cfg.height), jnp.inf, jnp.float32)
-        best_g = jnp.full((cfg.width, cfg.height), -1, jnp.int32)
-        bound = jnp.full((cfg.width,), jnp.inf, jnp.float32)  # min E over overflowing types
         kmax = {_BOX: cfg.k_box, _SPHERE: cfg.k_sphere, _CAPSULE: cfg.k_capsule}
+        # per culled type: the column's candidates (W, k), nearest footprint entry first
+        columns = {
+            t: self._column_candidates(
+                c_cam[ids], r_cam[ids], _bounding_box_size(t, self.geom_size[ids]), kmax[t]
+            )
+            for t, ids in self.type_ids.items()
+            if kmax[t] < len(ids)
+        }
+
+        best_t = jnp.full((cfg.width, nb, rows), jnp.inf, jnp.float32)
+        best_g = jnp.full((cfg.width, nb, rows), -1, jnp.int32)
+        bound = jnp.full((cfg.width, nb), jnp.inf, jnp.float32)  # min E over overflowing selections
         for t, ids in self.type_ids.items():
             ids_j = jnp.asarray(ids)
-            k = min(kmax[t], len(ids))
             size = self.geom_size[ids_j]
             cc, rc = c_cam[ids_j], r_cam[ids_j]
             p_loc = -jnp.einsum("gai,ga->gi", rc, cc)  # ray origin in the geom frame
             table = jnp.concatenate([rc.reshape(-1, 9), p_loc, size], -1)  # (Gt, 15)
-            if k < len(ids):
-                score = self._column_scores(cc, rc, _bounding_box_size(t, size))  # (W, Gt)
-                # materialise once: left to fusion, XLA recomputes the scores in every consumer
-                score = jax.lax.optimization_barrier(score)
-                neg, cand = jax.lax.top_k(-score, k)  # (W, k) nearest-entry candidates
-                overflow = jnp.sum(jnp.isfinite(score), -1) > k
-                # E = largest kept t_enter. A max over all k values, not neg[:, -1]: XLA:CPU maps
-                # top_k to its fast TopK call only when the whole [0:k] slice is used, else it
-                # sorts all G per column (measured 10x slower).
-                kept_max = jnp.max(-neg, axis=-1)
-                bound = jnp.where(overflow, jnp.minimum(bound, kept_max), bound)
-                valid = jnp.isfinite(neg)  # (W, k) real candidates
-                tab = jnp.where(valid[..., None], table[cand], 0.0)  # one gather, (W, k, 15)
+            if t in columns:
+                cand, valid, e = self._band_candidates(columns[t])  # (W, nb, k) each, (W, nb)
+                bound = jnp.minimum(bound, e)
+                tab = jnp.where(valid[..., None], table[cand], 0.0)  # one gather, (W, nb, k, 15)
                 cand_g = ids_j[cand]
             else:  # few geoms of this type: test them all in every column, no culling needed
-                valid = jnp.ones((1, len(ids)), bool)
-                tab = table[None]  # (1, Gt, 15)
-                cand_g = jnp.broadcast_to(ids_j[None], (cfg.width, len(ids)))
-            comp = [tab[None, :, :, i].swapaxes(0, 1) for i in range(15)]  # each (W, 1, k)
+                valid = jnp.ones((1, 1, len(ids)), bool)
+                tab = table[None, None]  # (1, 1, Gt, 15)
+                cand_g = jnp.broadcast_to(ids_j, (cfg.width, nb, len(ids)))
+            comp = [tab[..., None, :, i] for i in range(15)]  # each (W | 1, nb | 1, 1, k)
             # direction in the geom frame: d_i = r[0,i] X + r[1,i] Y + r[2,i] (camera dir (X, Y, 1))
             d = [comp[0 * 3 + i] * X + comp[2 * 3 + i] + comp[1 * 3 + i] * Y for i in range(3)]
             p = comp[9:12]
@@ -376,25 +398,32 @@ class Camera:
                 tt = ray_sphere_soa(s[0], *p, *d)
             else:
                 tt = ray_capsule_soa(s[0], s[1], *p, *d)
-            tt = jnp.where(valid[:, None, :], tt, jnp.inf)  # (W, H, k)
-            tt = jnp.broadcast_to(tt, (cfg.width, cfg.height, tt.shape[-1]))
-            t_min, j = _min_argmin(tt)  # (W, H)
-            g_min = jnp.take_along_axis(cand_g, j, axis=1)
+            tt = jnp.where(valid[:, :, None, :], tt, jnp.inf)  # (W, nb, R, k)
+            tt = jnp.broadcast_to(tt, (cfg.width, nb, rows, tt.shape[-1]))
+            t_min, j = _min_argmin(tt)  # (W, nb, R)
+            g_min = jnp.take_along_axis(cand_g, j, axis=-1)
             better = t_min < best_t
             best_t = jnp.where(better, t_min, best_t)
             best_g = jnp.where(better, g_min, best_g)
 
+        best_t = best_t.reshape(cfg.width, nb * rows)[:, : cfg.height]  # (W, H)
+        best_g = best_g.reshape(cfg.width, nb * rows)[:, : cfg.height]
+        bound = jnp.repeat(bound, rows, axis=1)[:, : cfg.height]
         found = jnp.minimum(best_t, cfg.max_depth)
-        uncertain = jnp.sum(found > bound[:, None]).astype(jnp.int32)
+        uncertain = jnp.sum(found > bound).astype(jnp.int32)
         return self._finish(best_t.T, best_g.T, o, rot, xpos, xmat, uncertain)
 
     # ------------------------------------------------------------------ internals
-    def _column_scores(self, c_cam, r_cam, bsize):
-        """Per (column, geom): lower bound on the z-depth of any hit in the column (+inf: none).
+    def _column_candidates(self, c_cam, r_cam, bsize, k):
+        """The k geoms (of G of one type) that each column meets with the smallest footprint entry.
 
         Footprint of the geom's bounding box on the camera's (X, Z) plane = zonotope of the three
         projected half-axes v_i = bsize_i (r[0, i], r[2, i]) = intersection of three slabs with
-        normals perpendicular to each v_i; the column is the 2D ray t (x_j tan_h, 1).
+        normals perpendicular to each v_i; the column is the 2D ray t (x_j tan_h, 1), so its
+        parameter t is the z-depth, and [t_lo, t_hi] is where the column is inside the footprint.
+        Returns a dict of f32/i32[W, k]: cand (index into the G geoms), t_lo (+inf: no real
+        candidate), t_hi, y_lo / y_hi (the bounding box's vertical extent, camera Y), and e f32[W, 1]
+        (the largest kept t_lo where the column met more than k geoms, else +inf).
         """
         cfg = self.config
         X = jnp.asarray(self._col_x)[:, None]  # (W, 1)
@@ -417,10 +446,47 @@ class Camera:
             t_hi = jnp.minimum(t_hi, jnp.maximum(ta, tb))
         # vertical extent vs the column's wedge |Y| <= Z tan_v y_max (pixel centres) up to depth t_hi
         hy = sum(jnp.abs(r_cam[:, 1, i]) * bsize[:, i] for i in range(3))
+        y_lo, y_hi = c_cam[:, 1] - hy, c_cam[:, 1] + hy
         ymax = self._row_y_max * t_hi
-        vert = (c_cam[None, :, 1] - hy[None] <= ymax) & (c_cam[None, :, 1] + hy[None] >= -ymax)
-        passed = (t_hi >= t_lo) & vert
-        return jnp.where(passed, t_lo, jnp.inf)
+        passed = (t_hi >= t_lo) & (y_lo[None] <= ymax) & (y_hi[None] >= -ymax)
+        # materialise once: left to fusion, XLA recomputes the scores in every consumer
+        score = jax.lax.optimization_barrier(jnp.where(passed, t_lo, jnp.inf))
+        neg, cand = jax.lax.top_k(-score, k)  # (W, k) nearest-entry candidates
+        # E = largest kept t_lo. A max over all k values, not neg[:, -1]: XLA:CPU maps top_k to its
+        # fast TopK call only when the whole [0:k] slice is used, else it sorts all G per column
+        # (measured 10x slower).
+        overflow = jnp.sum(jnp.isfinite(score), -1) > k
+        e = jnp.where(overflow, jnp.max(-neg, axis=-1), jnp.inf)[:, None]
+        th = jnp.take_along_axis(t_hi, cand, axis=1)
+        return dict(cand=cand, t_lo=-neg, t_hi=th, y_lo=y_lo[cand], y_hi=y_hi[cand], e=e)
+
+    def _band_candidates(self, col):
+        """Per (column, band), the column's candidates `col` that the band's rays may hit.
+
+        Kept: the k_band with the smallest t_lo whose possible rows (slopes y = Y / t for Y in
+        [y_lo, y_hi], t in [t_lo, t_hi]) meet the band. Returns i32[W, nb, K] candidate indices,
+        bool[W, nb, K] real ones, and f32[W, nb] E (the largest kept t_lo where the column's or
+        the band's selection dropped some, else +inf: a ray whose hit is at depth <= E is exact).
+        """
+        cfg = self.config
+        tl, th, ylo, yhi = col["t_lo"], col["t_hi"], col["y_lo"], col["y_hi"]  # (W, k)
+        k = tl.shape[-1]
+        inv_lo = jnp.where(tl > 0, 1.0 / jnp.where(tl > 0, tl, 1.0), jnp.inf)  # t_lo = 0: unbounded
+        inv_hi = 1.0 / jnp.maximum(th, 1e-9)
+        y_max = jnp.where(yhi >= 0, jnp.where(yhi > 0, yhi * inv_lo, 0.0), yhi * inv_hi)
+        y_min = jnp.where(ylo <= 0, jnp.where(ylo < 0, ylo * inv_lo, 0.0), ylo * inv_hi)
+        tol = 1e-4
+        lo, hi = jnp.asarray(self._band_lo)[:, None], jnp.asarray(self._band_hi)[:, None]
+        ok = (y_max[:, None] >= lo - tol) & (y_min[:, None] <= hi + tol) & jnp.isfinite(tl)[:, None]
+        cand = jnp.broadcast_to(col["cand"][:, None], ok.shape)
+        e = jnp.broadcast_to(col["e"], ok.shape[:2])
+        kb = min(cfg.k_band, k)
+        if kb == k:  # every column candidate is tested in each band it may appear in
+            return cand, ok, e
+        neg, j = jax.lax.top_k(-jnp.where(ok, tl[:, None], jnp.inf), kb)
+        over = jnp.sum(ok, -1) > kb
+        e = jnp.minimum(e, jnp.where(over, jnp.max(-neg, axis=-1), jnp.inf))
+        return jnp.take_along_axis(cand, j, axis=-1), jnp.isfinite(neg), e
 
     def _finish(self, t, g, o, rot, xpos, xmat, uncertain) -> CameraOutput:
         """Depth / segmentation / shaded colour from per-pixel hit depth t and geom g (H, W)."""

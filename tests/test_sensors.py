@@ -281,6 +281,47 @@ def test_certificate_bounds_errors_when_k_too_small(primitives):
     assert total_wrong > 0  # the test does exercise dropped candidates
 
 
+def _tower_xml(cfg, depth=3.0, thick=0.1):
+    """One thin box per row band of `cfg`'s image, stacked at x = depth in front of a camera at the
+    origin facing +x: box b spans the band's rays at that depth and 0.1 m more, so no ray of another
+    band can reach it; a wall at x = 6 behind them, and 10 boxes behind the camera (never seen)."""
+    ys = SN.pixel_directions(cfg)[:, 0, 1]
+    rows = -(-cfg.height // cfg.row_bands)
+    geoms = []
+    for b in range(-(-cfg.height // rows)):
+        y = ys[b * rows : (b + 1) * rows]
+        z_lo, z_hi = depth * y.min() - 0.1, depth * y.max() + 0.1  # camera Y = world z - mount
+        zc, hz = cfg.mount_height + (z_lo + z_hi) / 2, (z_hi - z_lo) / 2
+        geoms.append(
+            f'<geom name="tier{b}" type="box" pos="{depth + thick / 2} 0 {zc}" size="{thick / 2} 3 {hz}"/>'
+        )
+    geoms.append('<geom name="back" type="box" pos="6.05 0 1" size="0.05 20 20"/>')
+    geoms += [f'<geom type="box" pos="{-2 - i} {i - 5} 1" size="0.2 0.2 0.2"/>' for i in range(10)]
+    return f"<mujoco><worldbody>{''.join(geoms)}</worldbody></mujoco>"
+
+
+def test_row_bands_cull_exactly():
+    """Per-band culling (CameraConfig.row_bands, k_band): with one candidate per band, every band of
+    a column of stacked boxes still sees its own box, exactly as mj_ray (each band's rows can reach
+    only its box and the wall behind, and the box comes first); with one band for the whole column,
+    the same k_band = 1 cannot hold them and the certificate flags the rays it got wrong."""
+    cfg = SN.CameraConfig(width=8, height=16, vfov_deg=90.0, max_depth=12.0, mount_height=1.0)
+    cfg = dataclasses.replace(cfg, row_bands=8, k_box=12, k_band=1)
+    m, d = _model_data(_tower_xml(cfg))
+    pose = [0.0, 0.0, 0.0]
+    out = _render(SN.Camera(m, cfg), d, pose)
+    assert int(out.uncertain) == 0
+    RayRef(m, d, cfg, pose).check(out)
+    tiers = [m.geom(f"tier{b}").id for b in range(8)]
+    np.testing.assert_array_equal(np.asarray(out.geom), np.repeat(tiers, 2)[:, None] * np.ones((1, 8), int))
+    np.testing.assert_allclose(np.asarray(out.depth), 3.0, atol=1e-5)
+
+    one_band = dataclasses.replace(cfg, row_bands=1)
+    coarse = _render(SN.Camera(m, one_band), d, pose)
+    wrong = int((np.abs(np.asarray(coarse.depth) - 3.0) > 1e-4).sum())
+    assert wrong > 0 and wrong <= int(coarse.uncertain)
+
+
 def test_kernels_agree_with_mjx_primitives():
     """The three exact kernels against mjx.ray's per-geom functions on random local rays."""
     from mujoco.mjx._src import ray as mjx_ray

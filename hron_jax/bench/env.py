@@ -7,8 +7,9 @@ with the ratio. Poses are random collision-free positions of the scene (seeded),
 uniform over the 5 actions. Per num_envs B:
     physics     jit(vmap(sim.step)) on B envs
     render/<b>  jit(vmap(camera.render)) on B envs, backend b in
-                kernel (column-culled analytic kernel, CameraConfig.k_box), kernel-nocull
-                (same kernel testing every geom: what culling buys), mjx (mjx.ray per pixel)
+                kernel (column- and band-culled analytic kernel, CameraConfig.k_box /
+                k_band), kernel-nocull (same kernel testing every geom: what culling buys),
+                mjx (mjx.ray per pixel)
     env/<b>     physics then render, the two jitted calls back to back (what an env step costs)
     native      one MjData per env, a Python loop over envs: `substeps` x mj_step with the same
                 controls, brake, then mj_multiRay for the same H x W rays and numpy lookups for
@@ -252,7 +253,7 @@ def bench_env(
         if b == "kernel":
             cfg = base
         elif b == "kernel-nocull":
-            cfg = dataclasses.replace(base, k_box=n_box, k_sphere=m.ngeom, k_capsule=m.ngeom)
+            cfg = dataclasses.replace(base, k_box=n_box, k_sphere=m.ngeom, k_capsule=m.ngeom, k_band=n_box)
         elif b == "mjx":
             cfg = dataclasses.replace(base, backend="mjx")
         else:
