@@ -40,14 +40,14 @@ three 2D slabs. A 2D slab test gives, per (column, geom), whether any ray of the
 geom (also requiring the geom's vertical extent to meet the column's vertical wedge within
 max_depth) and a lower bound t_enter on the z-depth of any such hit (the hit's (X, Z) projection
 lies in the footprint and on the column's 2D ray). Per column and per geom type we keep the K
-candidates with smallest t_enter (`lax.top_k`, static shapes), then run the exact 3D kernel on
-H x K pairs per column instead of H x G. Certificate: if more than K geoms passed in a column, the
-dropped ones all have t_enter >= E, the largest kept t_enter; a ray whose found hit is at depth <= E
-is therefore exact, and any other ray in an overflowing column counts in `uncertain`. With K large enough
-for the scene (the tests check house views give uncertain == 0 and agree with mj_ray), the
+candidates with smallest t_enter (`lax.top_k`, static shapes), then run the exact 3D kernel on H x K
+pairs per column instead of H x G. Certificate: if more than K geoms passed in a column, the dropped
+ones all have t_enter >= E, the largest kept t_enter; a ray whose found hit is at depth <= E is
+therefore exact, and any other ray in an overflowing column counts in `uncertain`. With K large
+enough for the scene (the tests check house views give uncertain == 0 and agree with mj_ray), the
 kernel is exact; `uncertain > 0` says K is too small for that view. Nonzero pitch is supported (the
-projection is then onto the tilted camera's X-Z plane); roll is not. Spheres and capsules are
-culled the same way when a scene has more of them than k_sphere / k_capsule, else all are tested.
+projection is then onto the tilted camera's X-Z plane); roll is not. Spheres and capsules are culled
+the same way when a scene has more of them than k_sphere / k_capsule, else all are tested.
 
 Row bands: a column's rows are split into `row_bands` bands (the last one padded), and each band
 keeps the `k_band` of the column's K candidates with the smallest t_enter whose rows it may hold: a
@@ -59,15 +59,16 @@ culling, i.e. dropping candidates behind a wall that covers the band, was built 
 a nearest-first selection of static size it never changes the work nor what is certified, since an
 occluded candidate is kept only when every nearer one is, and then E is past every band's hit.)
 
-Measured on scenes/house.xml (281 boxes then, 311 now; 32 x 32, 120 deg, max_depth 10 m): boxes passing the
-column test per column: mean 8.7, p99 23, max 43 over 300 random poses (inside furniture included).
-k_box = 32 (default): 0 uncertain rays in 108 room-centre views, a few in 0.9% of random-pose frames
-(8e-5 of all rays); k_box = 48: none in 320 random frames. Per band (8 bands of 4 rows, 64 random
-in-room poses) 2.2 candidates on average, p99 12: k_band = 8 (default) leaves 11 uncertain rays of
-65,536 (10 with bands off); at 128x128 (bands of 16 rows), 23 of 262,144 in 16 frames (13). CPU cost at batch 64 (2-core EPYC, shared): ~50 ms per batch with
-culling vs ~240 ms testing every geom and ~950 ms with mjx.ray; the row bands took the culled
-kernel from 32.3 to 27.9 ms per 64 frames at 32x32 and from 115.7 to 78.5 ms per 16 frames at
-128x128 (2-core Xeon, same process; where both certify, depths and geoms are identical).
+Measured on scenes/house.xml (281 boxes then, 311 now; 32 x 32, 120 deg, max_depth 10 m): boxes
+passing the column test per column: mean 8.7, p99 23, max 43 over 300 random poses (inside furniture
+included). k_box = 32 (default): 0 uncertain rays in 108 room-centre views, a few in 0.9% of
+random-pose frames (8e-5 of all rays); k_box = 48: none in 320 random frames. Per band (8 bands of 4
+rows, 64 random in-room poses) 2.2 candidates on average, p99 12: k_band = 8 (default) leaves 11
+uncertain rays of 65,536 (10 with bands off); at 128x128 (bands of 16 rows), 23 of 262,144 in 16
+frames (13). CPU cost at batch 64 (2-core EPYC, shared): ~50 ms per batch with culling vs ~240 ms
+testing every geom and ~950 ms with mjx.ray; the row bands took the culled kernel from 32.3 to 27.9
+ms per 64 frames at 32x32 and from 115.7 to 78.5 ms per 16 frames at 128x128 (2-core Xeon, same
+process; where both certify, depths and geoms are identical).
 XLA:CPU traps met on the way (each cost ~5-10x): components as separate arrays, not trailing axes
 of size 3; min and argmin as one variadic reduce; top_k values used as a whole slice (see
 render_geoms); the column scores materialised once (optimization_barrier).
