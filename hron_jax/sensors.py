@@ -62,16 +62,22 @@ occluded candidate is kept only when every nearer one is, and then E is past eve
 Measured on scenes/house.xml (281 boxes then, 311 now; 32 x 32, 120 deg, max_depth 10 m): boxes
 passing the column test per column: mean 8.7, p99 23, max 43 over 300 random poses (inside furniture
 included). k_box = 32 (default): 0 uncertain rays in 108 room-centre views, a few in 0.9% of
-random-pose frames (8e-5 of all rays); k_box = 48: none in 320 random frames. Per band (8 bands of 4
-rows, 64 random in-room poses) 2.2 candidates on average, p99 12: k_band = 8 (default) leaves 11
-uncertain rays of 65,536 (10 with bands off); at 128x128 (bands of 16 rows), 23 of 262,144 in 16
-frames (13). CPU cost at batch 64 (2-core EPYC, shared): ~50 ms per batch with culling vs ~240 ms
-testing every geom and ~950 ms with mjx.ray; the row bands took the culled kernel from 32.3 to 27.9
-ms per 64 frames at 32x32 and from 115.7 to 78.5 ms per 16 frames at 128x128 (2-core Xeon, same
-process; where both certify, depths and geoms are identical).
+random-pose frames (8e-5 of all rays); k_box = 48: none in 320 random frames. In exploratory
+episodes (64 envs, 30 random steps, 1,920 frames): per column 8.5 boxes on average (p99.9 32), at
+most 2 spheres and 2 capsules (so k_sphere = k_capsule = 4); per band (8 bands of 4 rows) 2.1 boxes
+(p99 12, max 26) and at most 2 spheres / capsules: k_band = 8 (default) leaves 11 uncertain rays of
+65,536 in 64 random in-room frames (10 with one band per column); at 128x128 (bands of 16 rows), 23
+of 262,144 in 16 frames (13). CPU cost at batch 64 (2-core EPYC, shared): ~50 ms per batch with
+culling vs ~240 ms testing every geom and ~950 ms with mjx.ray. Row bands, the smaller sphere /
+capsule K and the shading in components (below) together (2-core Xeon, one process, same frames):
+32.0 -> 20.8 ms per 64 frames at 32x32, 115.4 -> 52.1 ms per 16 frames at 128x128 (shading alone
+12.6 -> 5.4 ms there); where both certify, depth, geom, instance and class are identical and rgb
+within 1.2e-7.
 XLA:CPU traps met on the way (each cost ~5-10x): components as separate arrays, not trailing axes
-of size 3; min and argmin as one variadic reduce; top_k values used as a whole slice (see
-render_geoms); the column scores materialised once (optimization_barrier).
+of size 3 (also in the shading: `_finish`); min and argmin as one variadic reduce; top_k values
+used as a whole slice (see _column_candidates); the column scores materialised once
+(optimization_barrier). A band's candidates are picked from the column's sorted ones by rank (a
+cumsum and a one-hot sum), not by a second top_k: as fast on the CPU, and no sort on any backend.
 
 Shapes of the static tables: `geom_instance`, `geom_class` (ngeom,) int32 over the full model
 (scene geoms first, then the agent's: use `Simulator.geom_tables`).
@@ -109,8 +115,8 @@ class CameraConfig:
     pitch_deg: float = 0.0  # + looks up
     backend: str = "kernel"  # "kernel" | "mjx"
     k_box: int = 32  # per-column candidates kept per geom type (see module docstring)
-    k_sphere: int = 8
-    k_capsule: int = 8
+    k_sphere: int = 4  # house episodes: at most 2 spheres / 2 capsules per column (1,920 frames)
+    k_capsule: int = 4
     row_bands: int = 8  # a column's rows are culled again in this many bands (see module docstring)
     k_band: int = 8  # candidates kept per band, out of the column's
     ambient: float = 0.35  # Lambert shading: ambient + (1 - ambient) * max(0, n . l)
@@ -250,16 +256,21 @@ def ray_capsule(radius, half_len, p, d):
 
 
 def _local_normal(gtype, size, q):
-    """Outward unit normal at local surface point q (..., 3) for the geom type (per element)."""
-    # box: face whose normalised coordinate is largest
-    rel = jnp.abs(q) / jnp.maximum(size, _EPS)
-    ax = jnp.argmax(rel, axis=-1)
-    n_box = jax.nn.one_hot(ax, 3, dtype=q.dtype) * jnp.sign(jnp.take_along_axis(q, ax[..., None], -1))
-    n_sph = q
-    zc = jnp.clip(q[..., 2], -size[..., 1], size[..., 1])
-    n_cap = q - jnp.stack([jnp.zeros_like(zc), jnp.zeros_like(zc), zc], -1)
-    n = jnp.where((gtype == _BOX)[..., None], n_box, jnp.where((gtype == _SPHERE)[..., None], n_sph, n_cap))
-    return n / jnp.maximum(jnp.linalg.norm(n, axis=-1, keepdims=True), _EPS)
+    """Outward unit normal at local surface point q = (qx, qy, qz) for the geom type (per element).
+
+    Structure of arrays: size and q are 3-tuples of equally shaped arrays; returns a 3-tuple."""
+    # box: the face whose normalised coordinate is largest (first axis on ties, as argmax)
+    rel = [jnp.abs(qi) / jnp.maximum(si, _EPS) for qi, si in zip(q, size)]
+    ax0 = (rel[0] >= rel[1]) & (rel[0] >= rel[2])
+    ax1 = ~ax0 & (rel[1] >= rel[2])
+    ax = (ax0, ax1, ~ax0 & ~ax1)
+    n_box = [jnp.where(a, jnp.sign(qi), 0.0) for a, qi in zip(ax, q)]
+    zc = jnp.clip(q[2], -size[1], size[1])
+    n_cap = (q[0], q[1], q[2] - zc)
+    box, sphere = gtype == _BOX, gtype == _SPHERE
+    n = [jnp.where(box, nb, jnp.where(sphere, qs, nc)) for nb, qs, nc in zip(n_box, q, n_cap)]
+    inv = 1.0 / jnp.maximum(jnp.sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2), _EPS)
+    return tuple(ni * inv for ni in n)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -484,10 +495,16 @@ class Camera:
         kb = min(cfg.k_band, k)
         if kb == k:  # every column candidate is tested in each band it may appear in
             return cand, ok, e
-        neg, j = jax.lax.top_k(-jnp.where(ok, tl[:, None], jnp.inf), kb)
+        # The column's candidates come nearest first (top_k), so the band's are its first kb
+        # with ok: slot i takes the candidate of rank i, found by a one-hot sum (no sort).
+        rank = jnp.cumsum(ok, axis=-1) - 1  # (W, nb, k)
+        hit = ok[..., None, :] & (rank[..., None, :] == jnp.arange(kb)[:, None])  # (W, nb, kb, k)
+        j = jnp.sum(jnp.where(hit, jnp.arange(k), 0), -1)  # (W, nb, kb)
+        valid = jnp.any(hit, -1)
+        kept = ok & (rank < kb)
         over = jnp.sum(ok, -1) > kb
-        e = jnp.minimum(e, jnp.where(over, jnp.max(-neg, axis=-1), jnp.inf))
-        return jnp.take_along_axis(cand, j, axis=-1), jnp.isfinite(neg), e
+        e = jnp.minimum(e, jnp.where(over, jnp.max(jnp.where(kept, tl[:, None], -jnp.inf), -1), jnp.inf))
+        return jnp.take_along_axis(cand, j, axis=-1), valid, e
 
     def _finish(self, t, g, o, rot, xpos, xmat, uncertain) -> CameraOutput:
         """Depth / segmentation / shaded colour from per-pixel hit depth t and geom g (H, W)."""
@@ -496,18 +513,24 @@ class Camera:
         g = jnp.where(hit, g, -1)
         gs = jnp.maximum(g, 0)
         depth = jnp.where(hit, t, cfg.max_depth).astype(jnp.float32)
-        # shading: normal at the hit point, computed in the hit geom's frame
-        dirs_w = jnp.asarray(self._dirs_cam) @ rot.T  # (H, W, 3) world directions
-        pw = o + jnp.where(hit, t, 0.0)[..., None] * dirs_w
-        table = jnp.concatenate([xpos, xmat.reshape(-1, 9)], -1)[gs]  # (H, W, 12)
-        rg = table[..., 3:].reshape(*gs.shape, 3, 3)
-        q = jnp.einsum("hwji,hwj->hwi", rg, pw - table[..., :3])
-        n_loc = _local_normal(self.geom_type[gs], self.geom_size[gs], q)
-        n = jnp.einsum("hwij,hwj->hwi", rg, n_loc)
-        dhat = dirs_w / jnp.linalg.norm(dirs_w, axis=-1, keepdims=True)
-        lam = 0.5 * jnp.maximum(0.0, -jnp.sum(n * dhat, -1)) + 0.5 * jnp.maximum(0.0, n @ self._light)
+        # Shading: the normal at the hit point, computed in the hit geom's frame. Components as
+        # separate (H, W) arrays (see the ray kernels) and one gather of every per-geom value.
+        table = jnp.concatenate([xpos, xmat.reshape(-1, 9), self.geom_size, self.geom_rgb], -1)[gs]
+        col = [table[..., i] for i in range(table.shape[-1])]  # 18 x (H, W)
+        c, rg, size, rgb = col[0:3], col[3:12], col[12:15], col[15:18]  # rg[3 j + i] = R[j, i]
+        dirs = jnp.asarray(self._dirs_cam)  # (H, W, 3) camera directions, Z component 1
+        dw = [sum(rot[j, a] * dirs[..., a] for a in range(3)) for j in range(3)]  # world directions
+        tt = jnp.where(hit, t, 0.0)
+        rel = [o[j] + tt * dw[j] - c[j] for j in range(3)]  # hit point - geom centre (world)
+        q = tuple(sum(rg[3 * j + i] * rel[j] for j in range(3)) for i in range(3))
+        n_loc = _local_normal(self.geom_type[gs], size, q)
+        n = [sum(rg[3 * j + i] * n_loc[i] for i in range(3)) for j in range(3)]
+        inv_len = jax.lax.rsqrt(dw[0] ** 2 + dw[1] ** 2 + dw[2] ** 2)
+        towards = -sum(n[j] * dw[j] for j in range(3)) * inv_len  # headlight: n . (-dhat)
+        sun = sum(n[j] * self._light[j] for j in range(3))
+        lam = 0.5 * jnp.maximum(0.0, towards) + 0.5 * jnp.maximum(0.0, sun)
         shade = cfg.ambient + (1.0 - cfg.ambient) * lam
-        rgb = jnp.where(hit[..., None], self.geom_rgb[gs] * shade[..., None], 0.0)
+        rgb = jnp.stack([jnp.where(hit, ci * shade, 0.0) for ci in rgb], -1)
         return CameraOutput(
             depth=depth,
             rgb=rgb.astype(jnp.float32),

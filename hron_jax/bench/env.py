@@ -8,7 +8,8 @@ uniform over the 5 actions. Per num_envs B:
     physics     jit(vmap(sim.step)) on B envs
     render/<b>  jit(vmap(camera.render)) on B envs, backend b in
                 kernel (column- and band-culled analytic kernel, CameraConfig.k_box /
-                k_band), kernel-nocull (same kernel testing every geom: what culling buys),
+                k_band), kernel-columns (the same with one band per column: what the row
+                bands buy), kernel-nocull (same kernel testing every geom: what culling buys),
                 mjx (mjx.ray per pixel)
     env/<b>     physics then render, the two jitted calls back to back (what an env step costs)
     native      one MjData per env, a Python loop over envs: `substeps` x mj_step with the same
@@ -252,6 +253,8 @@ def bench_env(
     for b in backends:
         if b == "kernel":
             cfg = base
+        elif b == "kernel-columns":
+            cfg = dataclasses.replace(base, row_bands=1, k_band=base.k_box)
         elif b == "kernel-nocull":
             cfg = dataclasses.replace(base, k_box=n_box, k_sphere=m.ngeom, k_capsule=m.ngeom, k_band=n_box)
         elif b == "mjx":
@@ -356,7 +359,7 @@ def add_args(p: argparse.ArgumentParser) -> None:
         "--backends",
         nargs="+",
         default=["kernel", "kernel-nocull", "mjx"],
-        choices=["kernel", "kernel-nocull", "mjx"],
+        choices=["kernel", "kernel-columns", "kernel-nocull", "mjx"],
     )
     p.add_argument("--native-envs", type=int, default=8)
 
