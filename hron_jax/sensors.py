@@ -65,14 +65,15 @@ included). k_box = 32 (default): 0 uncertain rays in 108 room-centre views, a fe
 random-pose frames (8e-5 of all rays); k_box = 48: none in 320 random frames. In exploratory
 episodes (64 envs, 30 random steps, 1,920 frames): per column 8.5 boxes on average (p99.9 32), at
 most 2 spheres and 2 capsules (so k_sphere = k_capsule = 4); per band (8 bands of 4 rows) 2.1 boxes
-(p99 12, max 26) and at most 2 spheres / capsules: k_band = 8 (default) leaves 11 uncertain rays of
-65,536 in 64 random in-room frames (10 with one band per column); at 128x128 (bands of 16 rows), 23
-of 262,144 in 16 frames (13). CPU cost at batch 64 (2-core EPYC, shared): ~50 ms per batch with
-culling vs ~240 ms testing every geom and ~950 ms with mjx.ray. Row bands, the smaller sphere /
-capsule K and the shading in components (below) together (2-core Xeon, one process, same frames):
-32.0 -> 20.8 ms per 64 frames at 32x32, 115.4 -> 52.1 ms per 16 frames at 128x128 (shading alone
-12.6 -> 5.4 ms there); where both certify, depth, geom, instance and class are identical and rgb
-within 1.2e-7.
+(p99 12, p99.9 18, max 26) and at most 2 spheres / capsules. k_band = 12 (default) leaves exactly as
+many uncertain rays in episode frames as one band per column: 29 of 655,360 in 640 frames at 32x32,
+102 of 2.6 M in 160 frames at 128x128 (k_band = 8: 50 at 32x32); `bench env`'s random free poses,
+some outside the house, show more (21 vs 9 in 64 frames at 32x32, 104 vs 0 in 16 at 128x128). CPU
+cost at batch 64 (2-core EPYC, shared): ~50 ms per batch with culling vs ~240 ms testing every geom
+and ~950 ms with mjx.ray. Row bands, the smaller sphere / capsule K and the shading in components
+(below) together (2-core Xeon, one process, the same in-room frames): 31.2 -> 24.5 ms per 64 frames
+at 32x32, 116.8 -> 61.4 ms per 16 frames at 128x128 (shading alone 12.6 -> 5.4 ms there); where both
+certify, depth, geom, instance and class are identical and rgb within 1.2e-7.
 XLA:CPU traps met on the way (each cost ~5-10x): components as separate arrays, not trailing axes
 of size 3 (also in the shading: `_finish`); min and argmin as one variadic reduce; top_k values
 used as a whole slice (see _column_candidates); the column scores materialised once
@@ -118,7 +119,7 @@ class CameraConfig:
     k_sphere: int = 4  # house episodes: at most 2 spheres / 2 capsules per column (1,920 frames)
     k_capsule: int = 4
     row_bands: int = 8  # a column's rows are culled again in this many bands (see module docstring)
-    k_band: int = 8  # candidates kept per band, out of the column's
+    k_band: int = 12  # candidates kept per band, out of the column's
     ambient: float = 0.35  # Lambert shading: ambient + (1 - ambient) * max(0, n . l)
     light_dir: tuple = (0.3, 0.2, 1.0)  # world direction towards a distant light (plus a headlight)
 
