@@ -78,7 +78,8 @@ XLA:CPU traps met on the way (each cost ~5-10x): components as separate arrays, 
 of size 3 (also in the shading: `_finish`); min and argmin as one variadic reduce; top_k values
 used as a whole slice (see _column_candidates); the column scores materialised once
 (optimization_barrier). A band's candidates are picked from the column's sorted ones by rank (a
-cumsum and a one-hot sum), not by a second top_k: as fast on the CPU, and no sort on any backend.
+cumsum and one comparison count per slot), not by a second top_k: as fast on the CPU, and no sort
+and no one-hot table on any backend.
 
 Shapes of the static tables: `geom_instance`, `geom_class` (ngeom,) int32 over the full model
 (scene geoms first, then the agent's: use `Simulator.geom_tables`).
@@ -496,15 +497,17 @@ class Camera:
         kb = min(cfg.k_band, k)
         if kb == k:  # every column candidate is tested in each band it may appear in
             return cand, ok, e
-        # The column's candidates come nearest first (top_k), so the band's are its first kb
-        # with ok: slot i takes the candidate of rank i, found by a one-hot sum (no sort).
-        rank = jnp.cumsum(ok, axis=-1) - 1  # (W, nb, k)
-        hit = ok[..., None, :] & (rank[..., None, :] == jnp.arange(kb)[:, None])  # (W, nb, kb, k)
-        j = jnp.sum(jnp.where(hit, jnp.arange(k), 0), -1)  # (W, nb, kb)
-        valid = jnp.any(hit, -1)
-        kept = ok & (rank < kb)
-        over = jnp.sum(ok, -1) > kb
-        e = jnp.minimum(e, jnp.where(over, jnp.max(jnp.where(kept, tl[:, None], -jnp.inf), -1), jnp.inf))
+        # The column's candidates come nearest first (top_k), so the band's are its first kb with
+        # ok. With c the running count of ok, the i-th of them sits at #{p : c_p <= i}: one
+        # comparison count per slot, no sort and no one-hot table.
+        c = jnp.cumsum(ok, axis=-1, dtype=jnp.int32)  # (W, nb, k)
+        j = jnp.sum(c[..., None, :] <= jnp.arange(kb, dtype=jnp.int32)[:, None], -1, dtype=jnp.int32)
+        n = c[..., -1:]  # (W, nb, 1) candidates of the band
+        valid = jnp.arange(kb) < n
+        kept = ok & (c <= kb)
+        e_band = jnp.max(jnp.where(kept, tl[:, None], -jnp.inf), -1)
+        e = jnp.minimum(e, jnp.where(n[..., 0] > kb, e_band, jnp.inf))
+        j = jnp.minimum(j, k - 1)  # slots past the band's count (invalid) read the last candidate
         return jnp.take_along_axis(cand, j, axis=-1), valid, e
 
     def _finish(self, t, g, o, rot, xpos, xmat, uncertain) -> CameraOutput:
