@@ -73,10 +73,12 @@ def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
     """{instruction name: (opcode, source, op_name)} of an optimised HLO module's text (op_name:
     the JAX name stack of its metadata, e.g. '.../transpose(jvp(ActorCritic))/.../scatter-add').
     The source is the innermost hron_jax file on the instruction's stack (metadata stack frames),
-    'via' the library whose code emitted it when that is not ours (e.g. 'sim.py via mujoco'), or
-    "XLA's own" for what XLA inserted (copies, layout changes; no metadata). Parameters are left
-    out. Needs stacks deep enough to reach our frames: compile with
-    jax_traceback_in_locations_limit raised (`deep_tracebacks`)."""
+    'via' the library whose code emitted it when that is not ours (e.g. 'sim.py via mujoco'),
+    '(no hron_jax frame) via LIB' when the stack does not reach our code (e.g. MJX kinematics
+    traced inside MJX's own scans, optax; JAX drops its own frames), or "XLA's own" for what
+    XLA inserted (copies, layout changes; no metadata). Parameters are left out. Needs stacks
+    deep enough to reach our frames: compile with jax_traceback_in_locations_limit raised
+    (`deep_tracebacks`)."""
     import re
 
     sections, current = {}, None
@@ -114,7 +116,12 @@ def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
                     name += f" via {lib}"
                 return name
             frame = parent
-        return "(no hron_jax frame)"
+        if inner is None:
+            return "(no hron_jax frame)"
+        # e.g. MJX internals traced where the stack no longer reaches our code, jax.random's
+        # threefry, optax: name the library whose code emitted it
+        lib = inner.split("site-packages/", 1)[-1].split("/", 1)[0] if "site-packages/" in inner else inner
+        return f"(no hron_jax frame) via {lib.rsplit('/', 1)[-1]}"
 
     out = {}
     instruction = re.compile(r"\s*(?:ROOT )?%(\S+) = .*? ([a-z][\w-]*)\(")
