@@ -447,6 +447,7 @@ NAV_BAD_VALUES = {  # fields of the navigation env, dotted into its sub-configs
         'camera.width=0',
         'success_distance=-1',
         'camera.vfov_deg=190',
+        'camera.k_band=0',
         'camera.nope=1',
         'num_distractors=-2',
     ],
