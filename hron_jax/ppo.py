@@ -40,8 +40,10 @@ metrics (one entry per update, each f32[n_updates]): the episode metrics (envs.b
 'success', 'spl', 'episode_length', 'path_length', 'return') are means over the episodes completed
 during that update's rollout (NaN when none completed), 'episodes' their count, 'reward' the mean
 per-step reward, 'env_steps' the cumulative number of env steps, 'kl_coeff' the penalty's
-coefficient during the update, 'kl_last_epoch' the mean KL its adaptation used, and the loss
-terms ('kl' the exact KL(old || new)) averaged over epochs and minibatches.
+coefficient during the update, 'kl_last_epoch' the mean KL its adaptation used, the loss
+terms ('kl' the exact KL(old || new)) averaged over epochs and minibatches, and, for envs whose
+info has it (navigation), 'uncertain_rays': the mean fraction of each observed frame's rays that
+the ray caster's culling could not certify (hron_jax.sensors; 0 = every frame exact).
 
 Everything is deterministic given the rng: chunked updates give the same result as one-shot training.
 """
@@ -146,6 +148,7 @@ class Transition(NamedTuple):
     truncation: jax.Array
     final_value: jax.Array  # value of the pre-reset obs where truncation, else 0
     metrics: dict
+    uncertain_rays: Any = None  # the env's info['uncertain_rays'] per step, where it has one
 
 
 class PPO(NamedTuple):
@@ -259,7 +262,7 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             policy,
             rng,
             num_steps,
-            record=lambda s, *_: {'obs': s.obs},
+            record=lambda s, *_: {'obs': s.obs, **{k: s.info[k] for k in ('uncertain_rays',) if k in s.info}},
             policy_on_final=True,
         )
         obs = traj.pop('obs')  # T + 1 rows; the learner samples only from the first T
@@ -325,7 +328,7 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             adv = (adv - adv.mean()) / jnp.maximum(adv.std(), 1e-4)
         # Flatten [T, B] -> [T*B] (obs: [(T+1)*B], of which the permutation takes only the first
         # T*B rows, so the extra row is never copied out); the metrics are not needed by the loss.
-        batch = (traj._replace(metrics={}), adv, target)
+        batch = (traj._replace(metrics={}, uncertain_rays=None), adv, target)
         batch = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)
 
         def epoch(carry, _):
@@ -353,6 +356,8 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         metrics = {k: v.mean() for k, v in aux.items()}
         metrics.update(_masked_episode_means(traj.metrics))
         metrics['reward'] = traj.reward.mean()
+        if traj.uncertain_rays is not None:  # rays of the observed frames the camera could not certify
+            metrics['uncertain_rays'] = traj.uncertain_rays.mean()
         update = runner.update + 1
         metrics['env_steps'] = (update * config.batch_size).astype(jnp.float32)
         # RLlib's adaptive KL coefficient, from the mean KL of the update's last epoch.

@@ -415,3 +415,23 @@ def test_vmap_matches_single_env(directed, directed_oracle):
         np.testing.assert_array_equal(traj['done'], directed_oracle['done'][i])
         np.testing.assert_allclose(traj['reward'], directed_oracle['reward'][i], atol=1e-4)
         np.testing.assert_allclose(traj['metrics']['spl'], directed_oracle['metrics']['spl'][i], atol=1e-5)
+
+
+def test_info_reports_the_observed_frames_uncertain_rays(directed):
+    """info['uncertain_rays'] is the fraction of the observed frame's rays the camera could not
+    certify: 0 <= it <= 1, equal to the camera's own count for that frame after reset and after
+    steps; with culling sizes of 1 it is > 0 (and PPO logs its mean, see ppo.py)."""
+    import dataclasses
+
+    env = directed.env
+    key = jax.random.PRNGKey(5)
+    state0, last, _ = directed.run(directed.sample(key), key, _scripted(directed, [FORWARD, FORWARD]))
+    pixels = env.config.camera.width * env.config.camera.height
+    for s in (state0, last):
+        data = s.inner.data
+        frame = jax.jit(env.camera.render)(data, env.sim.agent_pose(data))
+        assert float(s.info['uncertain_rays']) == float(frame.uncertain) / pixels
+    tiny = dataclasses.replace(env.config.camera, k_box=1, k_sphere=1, k_capsule=1, k_band=1)
+    coarse = make_env('directed', camera=tiny)
+    frac = float(jax.jit(coarse.reset)(key).info['uncertain_rays'])
+    assert 0.0 < frac <= 1.0

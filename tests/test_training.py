@@ -636,6 +636,8 @@ def test_eval_on_a_held_out_scene(tmp_path, monkeypatch):
     )
     run_dir = tmp_path / 'run'
     train(config, run_dir)
+    # a navigation run logs the mean fraction of camera rays its renderer could not certify
+    assert all(0.0 <= r['uncertain_rays'] <= 1.0 for r in read_metrics(run_dir))
     held_out = ROOT / 'scenes' / 'house_1.xml'
     seen = {}
     real_evaluate = evaluation.evaluate

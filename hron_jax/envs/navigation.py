@@ -41,7 +41,9 @@ The pre-reset observation is not rendered; `info['final']` keeps what it takes t
 rollout steps where some env truncated (to bootstrap GAE), and does not wrap an env whose
 `auto_reset` attribute is True in AutoResetWrapper.
 
-Shapes of the env state: `NavInner` (below); info adds 'final' (FinalInputs).
+Shapes of the env state: `NavInner` (below); info adds 'final' (FinalInputs) and 'uncertain_rays'
+(f32: the fraction of the observation's camera rays whose hit the culled ray caster could not
+certify, hron_jax.sensors; PPO logs its mean as the metric of that name).
 Determinism: everything is a function of the reset key (the env's own key in inner.rng is split
 at every step), so a fixed seed reproduces rollouts exactly, batched or not.
 """
@@ -207,7 +209,7 @@ class NavigationEnv:
     def reset_to(self, episode: P.Episode, rng) -> EnvState:
         """Start a given episode (hand-built situations: edit a sampled Episode, e.g. its pose)."""
         start = self._start(episode)
-        obs, disc, mkey = self._observe(
+        obs, disc, mkey, uncertain = self._observe(
             start.data, episode.pose, start.discovered, start.map_key, episode.placement, episode.goal
         )
         inner = self._inner(start, disc, mkey, rng)
@@ -219,7 +221,7 @@ class NavigationEnv:
             episode.placement,
             episode.goal,
         )
-        return initial_state(obs, inner, info={'final': final})
+        return initial_state(obs, inner, info={'final': final, 'uncertain_rays': uncertain})
 
     def step(self, state: EnvState, action) -> EnvState:
         cfg = self.config
@@ -257,7 +259,7 @@ class NavigationEnv:
             view_pose = jnp.where(done, ep.pose, pose)
         else:
             nxt, view_pose = cont, pose
-        obs, disc, mkey = self._observe(
+        obs, disc, mkey, uncertain = self._observe(
             nxt.data, view_pose, nxt.discovered, nxt.map_key, nxt.placement, nxt.goal
         )
         nxt = nxt.replace(discovered=disc, map_key=mkey, rng=rng)
@@ -271,7 +273,7 @@ class NavigationEnv:
             spl=spl,
             path_length=path,
             max_steps=cfg.max_steps,
-            info={'final': final},
+            info={'final': final, 'uncertain_rays': uncertain},
         )
         if cfg.auto_reset:
             info = dict(out.info)
@@ -344,8 +346,12 @@ class NavigationEnv:
         )
 
     def _observe(self, data, pose, discovered, map_key, placement, goal):
-        """Render one frame and fold it into the graph (and map): (obs, discovered, map_key)."""
+        """Render one frame and fold it into the graph (and map): (obs, discovered, map_key,
+        uncertain), the last the f32 fraction of the frame's rays the camera's culling could not
+        certify (sensors: 0 = exact)."""
         frame = self.camera.render(data, pose)
+        cam = self.config.camera
+        uncertain = frame.uncertain.astype(jnp.float32) / (cam.width * cam.height)
         disc = self.graph_builder.update(discovered, placement, pose, frame.instance, frame.depth)
         rgbd = jnp.concatenate([frame.rgb, (frame.depth / self.config.camera.max_depth)[..., None]], -1)
         obs = {
@@ -357,7 +363,7 @@ class NavigationEnv:
         if self.metric_map is not None:
             map_key = self.metric_map.update(map_key, pose, frame.depth, frame.semantic)
             obs['map'] = self.metric_map.observe(map_key, pose)
-        return obs, disc, map_key
+        return obs, disc, map_key, uncertain
 
     def agent_pose(self, state: EnvState) -> jax.Array:
         return self.sim.agent_pose(state.inner.data)
