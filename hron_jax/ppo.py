@@ -262,7 +262,10 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
             policy,
             rng,
             num_steps,
-            record=lambda s, *_: {'obs': s.obs, **{k: s.info[k] for k in ('uncertain_rays',) if k in s.info}},
+            record=lambda s, *_: (
+                {'obs': s.obs}
+                | ({'uncertain_rays': s.info['uncertain_rays']} if 'uncertain_rays' in s.info else {})
+            ),
             policy_on_final=True,
         )
         obs = traj.pop('obs')  # T + 1 rows; the learner samples only from the first T

@@ -378,15 +378,6 @@ class Camera:
         Y = jnp.asarray(self._band_y)[None, :, :, None]  # (1, nb, R, 1) row slope per band
 
         kmax = {_BOX: cfg.k_box, _SPHERE: cfg.k_sphere, _CAPSULE: cfg.k_capsule}
-        # per culled type: the column's candidates (W, k), nearest footprint entry first
-        columns = {
-            t: self._column_candidates(
-                c_cam[ids], r_cam[ids], _bounding_box_size(t, self.geom_size[ids]), kmax[t]
-            )
-            for t, ids in self.type_ids.items()
-            if kmax[t] < len(ids)
-        }
-
         best_t = jnp.full((cfg.width, nb, rows), jnp.inf, jnp.float32)
         best_g = jnp.full((cfg.width, nb, rows), -1, jnp.int32)
         bound = jnp.full((cfg.width, nb), jnp.inf, jnp.float32)  # min E over overflowing selections
@@ -396,8 +387,10 @@ class Camera:
             cc, rc = c_cam[ids_j], r_cam[ids_j]
             p_loc = -jnp.einsum("gai,ga->gi", rc, cc)  # ray origin in the geom frame
             table = jnp.concatenate([rc.reshape(-1, 9), p_loc, size], -1)  # (Gt, 15)
-            if t in columns:
-                cand, valid, e = self._band_candidates(columns[t])  # (W, nb, k) each, (W, nb)
+            if kmax[t] < len(ids):
+                # the column's candidates (W, k), nearest footprint entry first, then per band
+                col = self._column_candidates(cc, rc, _bounding_box_size(t, size), kmax[t])
+                cand, valid, e = self._band_candidates(col)  # (W, nb, k) each, (W, nb)
                 bound = jnp.minimum(bound, e)
                 tab = jnp.where(valid[..., None], table[cand], 0.0)  # one gather, (W, nb, k, 15)
                 cand_g = ids_j[cand]

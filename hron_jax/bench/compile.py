@@ -118,8 +118,8 @@ def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
             frame = parent
         if inner is None:
             return "(no hron_jax frame)"
-        # e.g. MJX internals traced where the stack no longer reaches our code, jax.random's
-        # threefry, optax: name the library whose code emitted it
+        # e.g. MJX internals traced where the stack no longer reaches our code, optax: name the
+        # library whose code emitted it (JAX drops its own frames, so jax.random is never here)
         lib = inner.split("site-packages/", 1)[-1].split("/", 1)[0] if "site-packages/" in inner else inner
         return f"(no hron_jax frame) via {lib.rsplit('/', 1)[-1]}"
 

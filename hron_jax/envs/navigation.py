@@ -353,7 +353,7 @@ class NavigationEnv:
         cam = self.config.camera
         uncertain = frame.uncertain.astype(jnp.float32) / (cam.width * cam.height)
         disc = self.graph_builder.update(discovered, placement, pose, frame.instance, frame.depth)
-        rgbd = jnp.concatenate([frame.rgb, (frame.depth / self.config.camera.max_depth)[..., None]], -1)
+        rgbd = jnp.concatenate([frame.rgb, (frame.depth / cam.max_depth)[..., None]], -1)
         obs = {
             'rgbd': rgbd.astype(jnp.float32),
             'goal': goal_lib.encode_goal(goal[0], goal[1], goal[2], goal[3]),
