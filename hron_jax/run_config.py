@@ -171,6 +171,8 @@ RANGES: dict[str, tuple[str, Any]] = {
     'env.camera.row_bands': _AT_LEAST_1,
     'env.camera.k_band': _AT_LEAST_1,
     'env.sim.substeps': _AT_LEAST_1,
+    'env.sim.physics': ('jax, warp or auto', lambda v: v in ('jax', 'warp', 'auto')),
+    'env.sim.warp_contacts_per_env': _AT_LEAST_1,
     'env.sim.env_dt': _POSITIVE,
     'env.placement.slot_grid': _AT_LEAST_1,
     'env.placement.cell_size': _POSITIVE,
@@ -234,8 +236,10 @@ class TrainConfig:
         d = _upgrade(dict(d))
         if 'task' not in d or 'model' not in d:
             raise ConfigError('task' if 'task' not in d else 'model', 'missing from the config')
-        rest = {k: v for k, v in d.items() if k not in ('task', 'model')}
-        return make_config(d['task'], d['model'], _flatten(rest))
+        rest = _flatten({k: v for k, v in d.items() if k not in ('task', 'model')})
+        if d['task'] != 'choice' and 'env.sim.substeps' in rest:
+            rest.setdefault('env.sim.physics', 'jax')  # what ran before the field existed
+        return make_config(d['task'], d['model'], rest)
 
 
 def make_config(
@@ -281,6 +285,13 @@ def make_config(
         flat[field] = value
     if flat['scene'] is not None:
         flat['scene'] = portable_path(flat['scene'])
+    if 'env.sim.physics' in flat:  # config.json names the physics that ran, never 'auto'
+        from hron_jax.sim import resolve_physics
+
+        try:
+            flat['env.sim.physics'] = resolve_physics(flat['env.sim.physics'])
+        except ValueError as e:
+            raise ConfigError('env.sim.physics', str(e)) from None
     flat['preset'] = preset
     return _build(defaults, flat, '')
 

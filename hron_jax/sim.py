@@ -105,7 +105,35 @@ class SimConfig:
     max_geom_pairs: int | None = None  # None: smallest K that never drops a live contact
     solver_iterations: int = 4  # Newton iterations (few frictionless contacts on 3 dofs)
     ls_iterations: int = 8
+    physics: str = "auto"  # 'jax' | 'warp' | 'auto' (warp on NVIDIA GPUs when installed, else jax)
+    warp_contacts_per_env: int = 8  # MJX-Warp's contact pool: this many per env, shared by all envs
     agent_rgba: tuple = (0.2, 0.4, 0.9, 1.0)
+
+
+PHYSICS_IMPLS = ("auto", "jax", "warp")
+
+
+def warp_installed() -> bool:
+    """Whether MJX can use its Warp implementation (the `warp-lang` package imports)."""
+    from mujoco.mjx import warp as mjx_warp
+
+    return bool(mjx_warp.WARP_INSTALLED)
+
+
+def resolve_physics(physics: str) -> str:
+    """'jax' or 'warp': what `SimConfig.physics` runs on this machine ('auto': warp on an NVIDIA GPU
+    with warp-lang installed, else jax)."""
+    if physics not in PHYSICS_IMPLS:
+        raise ValueError(f"unknown physics {physics!r}; valid: {', '.join(PHYSICS_IMPLS)}")
+    if physics == "auto":
+        nvidia = jax.default_backend() == "gpu" and "nvidia" in jax.devices()[0].device_kind.lower()
+        return "warp" if nvidia and warp_installed() else "jax"
+    if physics == "warp" and not warp_installed():
+        raise ValueError(
+            "physics 'warp' needs the warp-lang package: pip install -e '.[warp]' (or '.[cuda]' on "
+            "NVIDIA GPUs), or choose physics 'jax'"
+        )
+    return physics
 
 
 def velocity_plan(config: SimConfig) -> np.ndarray:
@@ -285,6 +313,12 @@ class Simulator:
 
         self.mj_model = m
         self.mjx_model = mjx.put_model(m)
+        self.physics = resolve_physics(cfg.physics)
+        self._warp = None
+        if self.physics == "warp":
+            from hron_jax.sim_warp import WarpPhysics
+
+            self._warp = WarpPhysics(m, cfg.warp_contacts_per_env)
         self.nmocap = m.nmocap
         self.default_mocap_pos = (
             np.array(m.body_pos[m.body_mocapid >= 0][np.argsort(m.body_mocapid[m.body_mocapid >= 0])])
@@ -348,11 +382,15 @@ class Simulator:
         """Execute one discrete action: `substeps` MJX steps (env_dt seconds), then brake."""
         pose = data.qpos[self.qpos_adr]
         delta = self.action_delta(pose, action).astype(data.ctrl.dtype)
-
-        def substep(d, c):
-            return mjx.step(self.mjx_model, d.replace(ctrl=delta * c)), None
-
-        data, _ = jax.lax.scan(substep, data, self._ctrl_profile.astype(data.ctrl.dtype))
+        ctrl = self._ctrl_profile.astype(data.ctrl.dtype)[:, None] * delta  # (substeps, nu)
+        if self._warp is None:
+            data, _ = jax.lax.scan(
+                lambda d, c: (mjx.step(self.mjx_model, d.replace(ctrl=c)), None), data, ctrl
+            )
+        else:  # a batch of one world; vmapped callers step all worlds in one call (sim_warp)
+            args = (data.qpos, data.qvel, data.mocap_pos, data.mocap_quat, ctrl)
+            out = self._warp.substeps(*(a[None] for a in args))
+            data = data.replace(**{f: x[0] for f, x in out.items()})
         # Brake: whatever contacts did, nothing carries into the next action.
         return data.replace(qvel=data.qvel.at[self.dof_adr].set(0.0), ctrl=jnp.zeros_like(data.ctrl))
 

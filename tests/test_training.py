@@ -448,6 +448,8 @@ NAV_BAD_VALUES = {  # fields of the navigation env, dotted into its sub-configs
         'success_distance=-1',
         'camera.vfov_deg=190',
         'camera.k_band=0',
+        'sim.physics=mjx',
+        'sim.warp_contacts_per_env=0',
         'camera.nope=1',
         'num_distractors=-2',
     ],
