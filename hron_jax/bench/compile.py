@@ -172,6 +172,9 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--by-source", action="store_true", help="then the chunk's HLO instructions per source module"
     )
+    p.add_argument(
+        "--env-option", action="append", default=[], help="NAME=VALUE as in train.py, e.g. sim.physics=warp"
+    )
 
 
 def run(a: argparse.Namespace) -> None:
@@ -180,9 +183,13 @@ def run(a: argparse.Namespace) -> None:
     extra = {"fast_compile": True} if a.fast_compile else {}
     if a.preset:
         extra["preset"] = a.preset
-    config = config_from_args(dict(task=a.task, model=a.model, num_envs=a.num_envs, **extra))
+    config = config_from_args(
+        dict(task=a.task, model=a.model, num_envs=a.num_envs, env_option=a.env_option, **extra)
+    )
+    physics = f", physics {config.env.sim.physics}" if a.task != "choice" else ""
     print(
-        f"task {a.task}, model {a.model}, {a.num_envs} envs, cold compiles (no persistent cache)", flush=True
+        f"task {a.task}, model {a.model}, {a.num_envs} envs{physics}, cold compiles (no persistent cache)",
+        flush=True,
     )
     stream_table(HEADER, bench_compile(config), format_row)
     if a.by_source:

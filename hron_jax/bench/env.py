@@ -5,7 +5,8 @@ MJX steps) and of the ray-cast camera per backend, for each --num-envs; and the 
 native MuJoCo in a Python loop (mj_step substeps + mj_multiRay on the same rays, numpy lookups),
 with the ratio. Poses are random collision-free positions of the scene (seeded), actions are
 uniform over the 5 actions. Per num_envs B:
-    physics     jit(vmap(sim.step)) on B envs
+    physics     jit(vmap(sim.step)) on B envs, per --physics implementation (MJX = its JAX
+                implementation, MJX-Warp = SimConfig.physics 'warp')
     render/<b>  jit(vmap(camera.render)) on B envs, backend b in
                 kernel (column- and band-culled analytic kernel, CameraConfig.k_box /
                 k_band), kernel-columns (the same with one band per column: what the row
@@ -218,6 +219,7 @@ def bench_env(
     native_envs: int = 8,
     seed: int = 0,
     log=progress,
+    physics=("jax",),
 ):
     """Yields rows {num_envs, what, s_per_batch, steps_per_s, native_steps_per_s, ratio}, each as
     soon as it is measured (see the module docstring)."""
@@ -225,10 +227,19 @@ def bench_env(
     import jax.numpy as jnp
 
     from .. import sensors as SN
-    from ..sim import Simulator
+    from ..sim import SimConfig, Simulator
 
+    def simulator(impl):
+        cfg = SimConfig(physics=impl)
+        return (
+            Simulator.from_file(scene_path, cfg)
+            if scene_path
+            else Simulator.from_xml(synthetic_house_xml(), cfg)
+        )
+
+    sims = {impl: simulator(impl) for impl in physics}
+    sim = sims[physics[0]]
     if scene_path:
-        sim = Simulator.from_file(scene_path)
         try:
             from ..scenes import load_scene
 
@@ -236,7 +247,6 @@ def bench_env(
         except Exception:  # unannotated file: generic tables
             scene = None
     else:
-        sim = Simulator.from_xml(synthetic_house_xml())
         scene = None
     m = sim.mj_model
     print(
@@ -287,22 +297,25 @@ def bench_env(
             ratio=sps / native,
         )
 
-    phys = jax.jit(jax.vmap(sim.step))
     init = jax.jit(jax.vmap(sim.init))
     pose_fn = jax.jit(jax.vmap(sim.agent_pose))
+    phys = {impl: jax.jit(jax.vmap(s.step)) for impl, s in sims.items()}
+    label = {"jax": "MJX", "warp": "MJX-Warp"}
     for B, poses, acts in inputs:
         d0 = init(jnp.asarray(poses))
-        _, t_c = timed(lambda: phys(d0, jnp.asarray(acts[0])))
-        log(f"B={B}: physics compile {t_c:.1f} s")
+        for impl, step in phys.items():
+            _, t_c = timed(lambda: step(d0, jnp.asarray(acts[0])))
+            log(f"B={B}: physics/{impl} compile {t_c:.1f} s")
 
-        # physics: a chain of steps (each call consumes the previous data)
-        def run_phys(d):
-            for a in acts:
-                d = phys(d, jnp.asarray(a))
-            return d
+            # physics: a chain of steps (each call consumes the previous data)
+            def run_phys(d, step=step):
+                for a in acts:
+                    d = step(d, jnp.asarray(a))
+                return d
 
-        yield row(B, "physics (MJX)", best_time(lambda: run_phys(d0), repeats) / steps, "physics")
-        d_end = run_phys(d0)
+            t = best_time(lambda: run_phys(d0), repeats) / steps
+            yield row(B, f"physics ({label[impl]})", t, "physics")
+        d_end = run_phys(d0)  # the last physics' end state: every render row renders the same frames
         p_end = pose_fn(d_end)
 
         for b, cam in cams.items():
@@ -314,13 +327,16 @@ def bench_env(
             )
             yield row(B, f"render/{b}", time_calls(rend, [(d_end, p_end)] * steps, repeats), "render")
 
-            def run_env(d):
-                for a in acts:
-                    d = phys(d, jnp.asarray(a))
-                    o = rend(d, pose_fn(d))
-                return d, o
+            for impl, step in phys.items():
 
-            yield row(B, f"env/{b}", best_time(lambda: run_env(d0), repeats) / steps, "env")
+                def run_env(d, step=step):
+                    for a in acts:
+                        d = step(d, jnp.asarray(a))
+                        o = rend(d, pose_fn(d))
+                    return d, o
+
+                what = f"env/{b}" + (f" ({label[impl]})" if len(phys) > 1 else "")
+                yield row(B, what, best_time(lambda: run_env(d0), repeats) / steps, "env")
 
     # native MuJoCo reference (single core, Python loop over envs), measured above
     for w, what in (
@@ -362,6 +378,9 @@ def add_args(p: argparse.ArgumentParser) -> None:
         choices=["kernel", "kernel-columns", "kernel-nocull", "mjx"],
     )
     p.add_argument("--native-envs", type=int, default=8)
+    p.add_argument(
+        "--physics", nargs="+", default=["jax"], choices=["jax", "warp"], help="MJX implementation(s)"
+    )
 
 
 def run(a: argparse.Namespace) -> None:
@@ -369,7 +388,15 @@ def run(a: argparse.Namespace) -> None:
     stream_table(
         HEADER,
         bench_env(
-            scene, tuple(a.num_envs), a.steps, a.repeats, a.width, a.height, tuple(a.backends), a.native_envs
+            scene,
+            tuple(a.num_envs),
+            a.steps,
+            a.repeats,
+            a.width,
+            a.height,
+            tuple(a.backends),
+            a.native_envs,
+            physics=tuple(a.physics),
         ),
         format_row,
     )
