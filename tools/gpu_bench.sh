@@ -10,6 +10,10 @@
 #       env       bench env: physics, 128x128 render, env step at 1024 / 4096 / 8192 envs, with
 #                 the row-band culled kernel (default) and one band per column (the kernel
 #                 before the bands)
+#       env-warp  bench env: physics and env step with MJX's JAX implementation and MJX-Warp at
+#                 1024 / 4096 / 8192 envs, 128x128 (needs warp-lang there: see "Warp on the GPU
+#                 machine" in README; without it the stage fails with that message)
+#       train32w  train32 with Warp physics (--env-option sim.physics=warp)
 #       env-nocull bench env at 1024 envs without culling (every ray tests every geom: if XLA
 #                 fuses the test into the min, no candidate tables at all; 21 GB if it does not)
 #       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
@@ -35,7 +39,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env env-nocull profile train32 train32bf profilebf train128 train128p compile trainpy trainpy-na)
+((${#STAGES[@]})) || STAGES=(env env-nocull profile train32 train32bf profilebf train128 train128p compile trainpy trainpy-na env-warp train32w)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -56,6 +60,10 @@ main() {
     case $s in
       env) step "$(box 150)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
         --height 128 --backends kernel kernel-columns --native-envs 4 --steps 10 --repeats 2 ;;
+      env-warp) step "$(box 200)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
+        --height 128 --backends kernel --physics jax warp --native-envs 4 --steps 10 --repeats 2 ;;
+      train32w) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
+        --image-size 32 --repeats 2 --env-option sim.physics=warp ;;
       env-nocull) step "$(box 60)" python3 -m hron_jax.bench env --num-envs 1024 --width 128 --height 128 \
         --backends kernel-nocull --native-envs 1 --steps 10 --repeats 2 ;;
       profile) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
@@ -74,7 +82,7 @@ main() {
       trainpy) step "$(box 220)" python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
         train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;
-      *) echo "unknown stage $s (valid: env env-nocull profile train32 train32bf profilebf train128 train128p compile trainpy trainpy-na)" ;;
+      *) echo "unknown stage $s (valid: env env-nocull env-warp profile train32 train32w train32bf profilebf train128 train128p compile trainpy trainpy-na)" ;;
     esac
   done
 }

@@ -38,8 +38,9 @@ def train_config(a: argparse.Namespace, num_envs: int):
         args["epochs"] = a.epochs
     if a.distractors:
         args["distractors"] = True
+    args["env_option"] = list(a.env_option or [])
     if a.image_size is not None:
-        args["env_option"] = [f"image_size={a.image_size}"]
+        args["env_option"].append(f"image_size={a.image_size}")
     if a.model_option:
         args["model_option"] = list(a.model_option)
     return config_from_args(args)
@@ -114,6 +115,9 @@ def add_args(p: argparse.ArgumentParser, single_num_envs: bool = False) -> None:
     p.add_argument(
         "--model-option", action="append", metavar="NAME=VALUE", help="as train.py's, e.g. conv=xla"
     )
+    p.add_argument(
+        "--env-option", action="append", metavar="NAME=VALUE", help="as train.py's, e.g. sim.physics=warp"
+    )
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--distractors", action="store_true")
 
@@ -121,7 +125,7 @@ def add_args(p: argparse.ArgumentParser, single_num_envs: bool = False) -> None:
 def run(a: argparse.Namespace) -> None:
     print(
         f"task {a.task}, model {a.model}, num_steps {a.num_steps}, minibatch ~{a.minibatch_size}, "
-        f"camera {a.image_size or 'default'}",
+        f"camera {a.image_size or 'default'}, env options {a.env_option or 'none'}",
         flush=True,
     )
     stream_table(HEADER, bench_train(a), format_row)
