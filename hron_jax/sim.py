@@ -58,6 +58,13 @@ the body capsule resting 2-3 cm from the wall surface. Finally a brake zeroes th
 the last substep (in free space it is zero already; it matters in contact), so no velocity ever
 carries into the next step: each action is a self-contained motion primitive, as in the paper.
 
+Physics implementation (`SimConfig.physics`): 'jax' steps with MJX's JAX implementation (the mjx.Data
+is carried as is); 'warp' with MJX-Warp (`hron_jax.sim_warp`: vmapped envs are stepped in one call
+and only time, qpos, qvel and body / geom poses come back into the carried mjx.Data, whose contact
+fields then stay those of `init`); 'auto' is warp on an NVIDIA GPU with warp-lang installed, else
+jax. Warp agrees with native MuJoCo where MJX's JAX capsule-box collider misses contacts at the
+corners of low boxes (README, tests/test_sim_warp.py).
+
 Shapes: pose f32[3]; mocap_pos f32[nmocap, 3]; mocap_quat f32[nmocap, 4] (w, x, y, z); action i32[].
 After `step`, `d.qpos`/`d.qvel` are final; `d.geom_xpos`/`geom_xmat` are those of the last substep's
 forward pass (static and mocap geoms are exact; only the agent's own geoms lag one substep, and the
@@ -388,7 +395,7 @@ class Simulator:
                 lambda d, c: (mjx.step(self.mjx_model, d.replace(ctrl=c)), None), data, ctrl
             )
         else:  # a batch of one world; vmapped callers step all worlds in one call (sim_warp)
-            args = (data.qpos, data.qvel, data.mocap_pos, data.mocap_quat, ctrl)
+            args = (data.qpos, data.qvel, data.time, data.mocap_pos, data.mocap_quat, ctrl)
             out = self._warp.substeps(*(a[None] for a in args))
             data = data.replace(**{f: x[0] for f, x in out.items()})
         # Brake: whatever contacts did, nothing carries into the next action.
