@@ -11,8 +11,8 @@
 #                 the row-band culled kernel (default) and one band per column (the kernel
 #                 before the bands)
 #       env-warp  bench env: physics and env step with MJX's JAX implementation and MJX-Warp at
-#                 1024 / 4096 / 8192 envs, 128x128 (needs warp-lang there: see "Warp on the GPU
-#                 machine" in README; without it the stage fails with that message)
+#                 1024 / 4096 / 8192 envs, 128x128 (needs warp-lang there, staged by
+#                 tools/gpu_stage_warp.sh; without it the stage fails with a message saying so)
 #       train32w  train32 with Warp physics (--env-option sim.physics=warp)
 #       env-nocull bench env at 1024 envs without culling (every ray tests every geom: if XLA
 #                 fuses the test into the min, no candidate tables at all; 21 GB if it does not)

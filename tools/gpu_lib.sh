@@ -28,6 +28,9 @@ setup() {
       --target /tmp/site .whl/*.whl || return 1
     export PYTHONPATH=/tmp/site:$PWD
   fi
+  if compgen -G '/tmp/warp_parts/part-*' >/dev/null || compgen -G '.warp/part-*' >/dev/null; then
+    step 120 bash tools/gpu_stage_warp.sh install && export PYTHONPATH=/tmp/site:$PWD
+  fi
   {
     step 60 python3 -c 'import jax, flax, optax, numpy, mujoco; print("jax", jax.__version__, jax.devices(), "flax",
 flax.__version__, "optax", optax.__version__, "numpy", numpy.__version__, "mujoco", mujoco.__version__)'
