@@ -1,6 +1,7 @@
 """Simulator: exact discrete motions in free space, walls stop the agent without penetration or
 tunnelling, no velocity carries over, vmap == single runs, contact filtering and the auto-chosen
-MJX broadphase K. CPU; the jitted step / init are compiled once per module (~1 min in all)."""
+MJX broadphase K; the behaviour tests run on MJX's JAX implementation and on MJX-Warp. CPU; the
+jitted step / init are compiled once per implementation (~1 min in all)."""
 
 from __future__ import annotations
 
@@ -46,9 +47,12 @@ R = S.SimConfig().radius
 NB = 20  # one batch size for every vmapped test: one compile
 
 
-@pytest.fixture(scope="module")
-def sim():
-    return S.Simulator.from_xml(SCENE)
+@pytest.fixture(scope="module", params=["jax", "warp"])
+def sim(request):
+    """Every behaviour test runs on both MJX implementations (warp: MJX-Warp on Warp's CPU backend)."""
+    if request.param == "warp":
+        pytest.importorskip("warp", reason="Warp physics needs warp-lang (the test extra installs it)")
+    return S.Simulator.from_xml(SCENE, S.SimConfig(physics=request.param))
 
 
 @pytest.fixture(scope="module")
