@@ -152,9 +152,9 @@ def test_one_seed_has_no_spread_and_old_config_files_are_read(R, tmp_path):
     f = R.collect_cell(runs, cell)
     assert R._ours(f['sr']) == '0.550 (n=1, no spread)'
     assert R.config_text(f) == (
-        "preset default (not the paper's settings); camera 32x32; HGT hidden 128, 2 heads, 3 layers, "
-        'joint softmax; PPO 64 envs x 64 steps, 4 epochs, minibatch 128, lr 2.5e-4; 131,072 env steps '
-        "/ seed (9 % of the paper's 1.5 M)"
+        "preset default (not the paper's settings); camera 32x32; physics MJX (JAX); HGT hidden 128, 2 "
+        'heads, 3 layers, joint softmax; PPO 64 envs x 64 steps, 4 epochs, minibatch 128, lr 2.5e-4; '
+        "131,072 env steps / seed (9 % of the paper's 1.5 M)"
     )
 
 
@@ -176,7 +176,8 @@ def test_config_text_says_paper_settings_only_when_they_ran(R, tmp_path):
     assert (
         text.startswith('seeds ran different configs: seed 0: preset paper (= the paper')
         and (
-            'camera 128x128; HGT hidden 128, 2 heads, 3 layers, per_relation softmax; PPO 8 envs x 512 '
+            'camera 128x128; physics MJX (JAX); HGT hidden 128, 2 heads, 3 layers, per_relation softmax; '
+            'PPO 8 envs x 512 '
             'steps, 30 epochs, minibatch 128, lr 1e-4, KL penalty 0.2; 4,096 env steps / seed (0.3 % of '
             "the paper's 1.5 M)"
         )

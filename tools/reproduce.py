@@ -209,6 +209,8 @@ def profile_steps(profile: str, task: str) -> int:
 # Fields that say which cell a run belongs to, not how it was trained (left out when comparing
 # a run's config with the paper preset).
 _CELL_FIELDS = ('env.distractors', 'env.premap', 'env.task', 'env.metric_map', 'env.image_obs')
+# How the physics is computed, not what the paper set: named on its own in `settings`.
+_IMPL_FIELDS = ('env.sim.physics', 'env.sim.warp_contacts_per_env')
 
 
 def _sci(x: float) -> str:
@@ -232,7 +234,7 @@ def paper_diff(cfg) -> list[str]:
         k
         for k in config_diff(ref, cfg)
         if k.split('.')[0] in ('env', 'network', 'ppo')
-        and k not in _CELL_FIELDS
+        and k not in _CELL_FIELDS + _IMPL_FIELDS
         and k != 'ppo.total_timesteps'
     ]
 
@@ -250,6 +252,7 @@ def settings(cfg) -> dict[str, str]:
     out = {'preset': preset}
     if cfg.task != 'choice':
         out['camera'] = f'camera {cfg.env.camera.width}x{cfg.env.camera.height}'
+        out['physics'] = 'physics ' + ('MJX-Warp' if cfg.env.sim.physics == 'warp' else 'MJX (JAX)')
     if n.use_graph:
         out['graph'] = (
             f'HGT hidden {n.hidden}, {n.heads} heads, {n.gnn_layers} layers, {n.hgt_softmax} softmax'
@@ -270,7 +273,7 @@ def settings(cfg) -> dict[str, str]:
 
 
 def describe_config(cfg) -> str:
-    """What a run ran, in one line: preset, camera, HGT, PPO, budget."""
+    """What a run ran, in one line: preset, camera, physics, HGT, PPO, budget."""
     return '; '.join(settings(cfg).values())
 
 
@@ -280,8 +283,9 @@ def _main_cell(task: str) -> Cell:
 
 
 def _what(cfg) -> str:
-    """describe_config without the preset (for text that has already said which preset)."""
-    return '; '.join(v for k, v in settings(cfg).items() if k != 'preset')
+    """describe_config without the preset (for text that has already said which preset) and the
+    physics (a profile leaves it to the machine: `auto`; each run's own text names it)."""
+    return '; '.join(v for k, v in settings(cfg).items() if k not in ('preset', 'physics'))
 
 
 def notes(table: int) -> list[str]:
@@ -688,16 +692,16 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
 
 
 def _settings_mismatch(run_dir: Path, target) -> str:
-    """'' when a measured run trained with the preset / camera / PPO of the config to be estimated,
+    """'' when a measured run trained with the preset / camera / physics / PPO of the config to be estimated,
     else a flag naming what differs (the cost per env step depends on them)."""
     from hron_jax.run_config import TrainConfig
 
     cfg = TrainConfig.from_dict(json.loads((run_dir / 'config.json').read_text())['config'])
     got, want = settings(cfg), settings(target)
-    diff = [k for k in ('preset', 'camera', 'ppo') if k in got and got[k] != want.get(k, got[k])]
+    diff = [k for k in ('preset', 'camera', 'physics', 'ppo') if k in got and got[k] != want.get(k, got[k])]
     if not diff:
         return ''
-    names = {'preset': 'preset', 'camera': 'camera', 'ppo': 'PPO'}
+    names = {'preset': 'preset', 'camera': 'camera', 'physics': 'physics', 'ppo': 'PPO'}
     return (
         f'; measured with preset {cfg.preset}: its {" / ".join(names[k] for k in diff)} settings '
         f"differ from the estimate's, {ROUGH}"
@@ -966,7 +970,7 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
         '- env steps: per seed; wall: mean per seed of training (excluding compilation, from '
         'metrics.jsonl) and of the whole train + eval processes (compilation included).',
         '- settings: every row\'s Config column says what its runs ran, read from each run\'s '
-        'config.json: preset, camera (navigation), HGT softmax and sizes (graph models), PPO '
+        'config.json: preset, camera and physics (navigation), HGT softmax and sizes (graph models), PPO '
         '(envs x steps per update, epochs, minibatch size, lr), budget. The paper\'s settings are '
         f"`train.py --preset paper` (navigation: {_what(paper_nav)}); only a run that ran exactly "
         'those says "= the paper\'s settings".',
