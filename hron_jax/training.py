@@ -266,9 +266,11 @@ class Trainer:
         if not resume:
             self._save()
         self.metrics = MetricsLog(self.run_dir, step if resume else None, tensorboard, write=self.is_main)
+        sim = getattr(config.env, 'sim', None)
         self._log(
             f'init: {time.perf_counter() - t:.1f} s; {config.num_seeds} seed(s) x '
             f'{config.ppo.num_envs} envs on {len(self.programs.mesh.devices)} device(s)'
+            + (f'; physics {sim.physics}' if sim is not None else '')
         )
 
     # -- checkpoints ----------------------------------------------------------------------------
