@@ -109,7 +109,8 @@ def run(a: argparse.Namespace) -> None:
     print(
         f"task {a.task}, model {a.model}, {config.ppo.num_envs} envs x {config.ppo.num_steps} steps, "
         f"{config.ppo.num_minibatches} minibatches x {config.ppo.update_epochs} epochs, camera "
-        f"{config.env.camera.width}x{config.env.camera.height}",
+        f"{config.env.camera.width}x{config.env.camera.height}"
+        + (f", physics {config.env.sim.physics}" if a.task != "choice" else ""),
         flush=True,
     )
     r = profile_update(config, a.repeats, a.trace_dir)

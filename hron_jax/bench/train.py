@@ -123,9 +123,11 @@ def add_args(p: argparse.ArgumentParser, single_num_envs: bool = False) -> None:
 
 
 def run(a: argparse.Namespace) -> None:
+    env = train_config(a, a.num_envs[0]).env
+    physics = f", physics {env.sim.physics}" if a.task != "choice" else ""
     print(
         f"task {a.task}, model {a.model}, num_steps {a.num_steps}, minibatch ~{a.minibatch_size}, "
-        f"camera {a.image_size or 'default'}, env options {a.env_option or 'none'}",
+        f"camera {a.image_size or 'default'}, env options {a.env_option or 'none'}{physics}",
         flush=True,
     )
     stream_table(HEADER, bench_train(a), format_row)
