@@ -13,7 +13,8 @@
 #       env-warp  bench env: physics and env step with MJX's JAX implementation and MJX-Warp at
 #                 1024 / 4096 / 8192 envs, 128x128 (needs warp-lang there, staged by
 #                 tools/gpu_stage_warp.sh; without it the stage fails with a message saying so)
-#       train32w  train32 with Warp physics (--env-option sim.physics=warp)
+#       train32w  train32 with Warp physics (the other stages pin MJX's JAX physics; the last
+#                 --env-option wins)
 #       env-nocull bench env at 1024 envs without culling (every ray tests every geom: if XLA
 #                 fuses the test into the min, no candidate tables at all; 21 GB if it does not)
 #       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
@@ -53,7 +54,9 @@ box() {
 
 main() {
   setup || return 1
-  local batch=(--num-envs 4096 --num-steps 16)
+  # MJX's JAX physics unless a stage says warp: a like-for-like A/B when warp-lang is staged ('auto'
+  # would pick warp then); trainpy runs as a user would (auto).
+  local batch=(--num-envs 4096 --num-steps 16 --env-option sim.physics=jax)
   local user_run=(--task exploratory --num-envs 1024 --num-steps 16 --minibatches 8 --total-steps 32768
     --log-every 1 --compile-cache none --no-progress)
   for s in "${STAGES[@]}"; do
@@ -78,7 +81,7 @@ main() {
         --image-size 128 --repeats 2 ;;
       train128p) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \
         --image-size 128 --repeats 2 --model-option conv=patches ;;
-      compile) step "$(box 200)" python3 -m hron_jax.bench compile --num-envs 1024 ;;
+      compile) step "$(box 200)" python3 -m hron_jax.bench compile --num-envs 1024 --env-option sim.physics=jax ;;
       trainpy) step "$(box 220)" python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
         train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;
