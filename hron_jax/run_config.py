@@ -171,7 +171,6 @@ RANGES: dict[str, tuple[str, Any]] = {
     'env.camera.row_bands': _AT_LEAST_1,
     'env.camera.k_band': _AT_LEAST_1,
     'env.sim.substeps': _AT_LEAST_1,
-    'env.sim.physics': ('jax, warp or auto', lambda v: v in ('jax', 'warp', 'auto')),
     'env.sim.warp_contacts_per_env': _AT_LEAST_1,
     'env.sim.env_dt': _POSITIVE,
     'env.placement.slot_grid': _AT_LEAST_1,
@@ -285,7 +284,7 @@ def make_config(
         flat[field] = value
     if flat['scene'] is not None:
         flat['scene'] = portable_path(flat['scene'])
-    if 'env.sim.physics' in flat:  # config.json names the physics that ran, never 'auto'
+    if 'env.sim.physics' in flat:  # checked and resolved: config.json names what ran, never 'auto'
         from hron_jax.sim import resolve_physics
 
         try:

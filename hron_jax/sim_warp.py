@@ -21,7 +21,7 @@ kernel launch per stage. Contacts, constraint rows and warm starts do not surviv
 agent is at rest after every env step (the Simulator's brake), so no state but the pose carries.
 
 The template's uniform leaves (zeros, -1) are rebuilt as broadcasts in the trace instead of being
-embedded as constants (the contact pool at 8192 envs would be ~9 MB of literals in the program).
+embedded as constants (the contact pool at 8192 envs would be ~10 MB of literals in the program).
 """
 
 from __future__ import annotations
