@@ -238,6 +238,7 @@ class TrainConfig:
         rest = _flatten({k: v for k, v in d.items() if k not in ('task', 'model')})
         if d['task'] != 'choice' and 'env.sim.substeps' in rest:
             rest.setdefault('env.sim.physics', 'jax')  # what ran before the field existed
+            rest.setdefault('env.sim.collider', 'capsule')  # likewise
         return make_config(d['task'], d['model'], rest)
 
 
@@ -285,12 +286,13 @@ def make_config(
     if flat['scene'] is not None:
         flat['scene'] = portable_path(flat['scene'])
     if 'env.sim.physics' in flat:  # checked and resolved: config.json names what ran, never 'auto'
-        from hron_jax.sim import resolve_physics
+        from hron_jax.sim import check_collider, resolve_physics
 
-        try:
-            flat['env.sim.physics'] = resolve_physics(flat['env.sim.physics'])
-        except ValueError as e:
-            raise ConfigError('env.sim.physics', str(e)) from None
+        for field, check in (('env.sim.physics', resolve_physics), ('env.sim.collider', check_collider)):
+            try:
+                flat[field] = check(flat[field])
+            except ValueError as e:
+                raise ConfigError(field, str(e)) from None
     flat['preset'] = preset
     return _build(defaults, flat, '')
 

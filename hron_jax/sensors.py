@@ -354,8 +354,7 @@ class Camera:
             geom_instance,
             geom_class,
             exclude_body=sim.agent_body,
-            mjx_model=sim.mjx_model if config.backend == "mjx" else None,
-        )
+        )  # not sim.mjx_model: MJX steps grown blockers (sim.physics_model), the camera sees true ones
 
     # ------------------------------------------------------------------ public API
     def render(self, data: mjx.Data, pose: jax.Array) -> CameraOutput:

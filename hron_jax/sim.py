@@ -21,17 +21,24 @@ velocity). One env step = `config.env_dt` = 0.1 s of simulated time (500 steps =
 The agent
 ---------
 Body `agent` with slide joints `agent:x`, `agent:y` (world axes, they come first) and hinge
-`agent:yaw`, so qpos[agent] = (x, y, yaw). Its body is a vertical capsule of radius 0.2 m from
-`bottom_clearance` (0.05 m, so floor seams and door thresholds never block it) to 1.2 m; the
-collision geom is that capsule grown by `contact_skin` (see below). The
-capsule is the only geom with contype=1; the geoms that should block it (walls, furniture: every geom
-that is not a room floor, not a mocap object, and reaches into the capsule's height range) get
-conaffinity=1, everything else contype=conaffinity=0. Static-static pairs never exist, so the
-candidate pairs are exactly agent x blockers. MJX evaluates every candidate pair every substep (its
-CPU cost scales with pairs), so the model carries the MJX numeric `max_geom_pairs` = K: per substep
-MJX keeps the K pairs of smallest bounding-sphere distance (lax.top_k). K is chosen at build time
-(`_auto_max_geom_pairs`) so that, for agent positions on a 5 cm grid over the whole scene, every
-blocker whose AABB could touch the capsule ranks within the top K: culling never drops a live contact.
+`agent:yaw`, so qpos[agent] = (x, y, yaw). Its body is a vertical capsule `agent:capsule` of radius
+0.2 m from `bottom_clearance` (0.05 m, so floor seams and door thresholds never block it) to 1.2 m,
+which is what it looks like and never collides. What collides is `agent:collider`, a sphere of the
+body's radius plus `contact_skin` at mid-height, against a physics model (`physics_model`) in which
+every blocker box grows about its centre until it spans the agent's height (`_physics_model`): a
+cylinder against prisms, i.e. planar collision for a planar motion, and a pair MJX's sphere-box
+collider gets exactly right (its capsule-box collider drops contacts near box edges; see
+`_physics_model`). The collider is the only geom with contype=1; the geoms that should block it
+(walls, furniture: every geom that is not a room floor, not a mocap object, and reaches into the
+agent's height range) get conaffinity=1, everything else contype=conaffinity=0. `mj_model` is the
+scene as it is (the camera, annotations and the geodesic map read it), `physics_model` the same
+model with grown blockers (MJX steps it; native references must step it too); geom centres agree.
+Static-static pairs never exist, so the candidate pairs are exactly agent x blockers. MJX evaluates
+every candidate pair every substep (its CPU cost scales with pairs), so the model carries the MJX
+numeric `max_geom_pairs` = K: per substep MJX keeps the K pairs of smallest bounding-sphere distance
+(lax.top_k). K is chosen at build time (`_auto_max_geom_pairs`) so that, for agent positions on a
+5 cm grid over the whole scene, every blocker whose AABB could touch the collider ranks within the
+top K: culling never drops a live contact.
 
 Control scheme: deadbeat velocity plan on implicit velocity servos
 ------------------------------------------------------------------
@@ -46,15 +53,15 @@ Why this and not a position servo: a position servo must be stiff to settle 0.2 
 (omega ~ 80 /s), and when a wall blocks it that stiffness times the remaining distance pushes the
 capsule deep into the (soft) contact; here the push against a wall is only kv * (planned velocity),
 and a small a (0.5) keeps it low (a = 1 already lets the capsule sink 14 mm; measured).
-Contacts: the collision capsule is the body radius plus a 2 cm skin (`contact_skin`), because MJX's
-capsule-box collider reports only penetrating contacts (it ignores geom margins: measured, dist = 1
-for separated pairs), so the early-contact zone must be part of the shape. The trapezoid caps travel
-at 2.9 cm per substep, about the skin, so the body capsule (radius 0.2) is never inside a wall at
-the end of a step (worst -0.6 mm over contact at every phase of a step, MJX and native alike) and
-cannot tunnel (walls are far thicker than one substep's travel). Contacts are frictionless
-(condim 1): turning in contact is not resisted and the agent slides along walls it meets obliquely.
-When blocked, the skin and the controller's last deceleration substep (a small pull-back) leave
-the body capsule resting 2-3 cm from the wall surface. Finally a brake zeroes the agent's qvel after
+Contacts: the collider is the body radius plus a 2 cm skin (`contact_skin`), because MJX's
+colliders report only penetrating contacts (they ignore geom margins: measured, dist = 1 for
+separated pairs), so the early-contact zone must be part of the shape. The trapezoid caps travel
+at 2.9 cm per substep, about the skin, so the body (radius 0.2) is never inside a wall at the end of
+a step (worst 0.01 mm over contact at every phase of a step, MJX and native alike) and cannot
+tunnel (walls are far thicker than one substep's travel). Contacts are frictionless (condim 1):
+turning in contact is not resisted and the agent slides along walls it meets obliquely. When
+blocked, the skin and the controller's last deceleration substep (a small pull-back) leave the body
+resting 2.8-3.1 cm from the wall surface. Finally a brake zeroes the agent's qvel after
 the last substep (in free space it is zero already; it matters in contact), so no velocity ever
 carries into the next step: each action is a self-contained motion primitive, as in the paper.
 
@@ -62,8 +69,8 @@ Physics implementation (`SimConfig.physics`): 'jax' steps with MJX's JAX impleme
 is carried as is); 'warp' with MJX-Warp (`hron_jax.sim_warp`: vmapped envs are stepped in one call
 and only time, qpos, qvel and body / geom poses come back into the carried mjx.Data, whose contact
 fields then stay those of `init`); 'auto' is warp on an NVIDIA GPU with warp-lang installed, else
-jax. Warp agrees with native MuJoCo where MJX's JAX capsule-box collider misses contacts at the
-corners of low boxes (README, tests/test_sim_warp.py).
+jax. Both agree with native MuJoCo on the physics model to well under a millimetre
+(tests/test_sim_native.py).
 
 Shapes: pose f32[3]; mocap_pos f32[nmocap, 3]; mocap_quat f32[nmocap, 4] (w, x, y, z); action i32[].
 After `step`, `d.qpos`/`d.qvel` are final; `d.geom_xpos`/`geom_xmat` are those of the last substep's
@@ -88,7 +95,8 @@ NUM_ACTIONS = 5
 ACTION_NAMES = ("forward", "backward", "turn_left", "turn_right", "stop")
 
 AGENT_BODY = "agent"
-AGENT_GEOM = "agent:capsule"
+AGENT_GEOM = "agent:capsule"  # the agent's body as seen (no contacts)
+AGENT_COLLIDER = "agent:collider"  # what collides (see _add_agent)
 AGENT_JOINTS = ("agent:x", "agent:y", "agent:yaw")
 
 
@@ -112,12 +120,21 @@ class SimConfig:
     max_geom_pairs: int | None = None  # None: smallest K that never drops a live contact
     solver_iterations: int = 4  # Newton iterations (few frictionless contacts on 3 dofs)
     ls_iterations: int = 8
+    collider: str = "sphere"  # 'sphere' (on prisms, see docstring) | 'capsule' (before 2026-12-02)
     physics: str = "auto"  # 'jax' | 'warp' | 'auto' (warp on NVIDIA GPUs when installed, else jax)
     warp_contacts_per_env: int = 8  # MJX-Warp's contact pool: this many per env, shared by all envs
     agent_rgba: tuple = (0.2, 0.4, 0.9, 1.0)
 
 
 PHYSICS_IMPLS = ("auto", "jax", "warp")
+COLLIDERS = ("sphere", "capsule")
+
+
+def check_collider(collider: str) -> str:
+    """`SimConfig.collider`, checked."""
+    if collider not in COLLIDERS:
+        raise ValueError(f"unknown collider {collider!r}; valid: {', '.join(COLLIDERS)}")
+    return collider
 
 
 def warp_installed() -> bool:
@@ -161,7 +178,7 @@ def control_profile(config: SimConfig) -> np.ndarray:
 
 
 def _add_agent(spec: mujoco.MjSpec, cfg: SimConfig) -> None:
-    """Inject the agent body, its joints, capsule and velocity actuators into `spec`."""
+    """Inject the agent body, its joints, visible capsule, collider sphere and velocity actuators."""
     dt = cfg.env_dt / cfg.substeps
     body = spec.worldbody.add_body(name=AGENT_BODY)
     for name, jtype, axis in (
@@ -178,17 +195,29 @@ def _add_agent(spec: mujoco.MjSpec, cfg: SimConfig) -> None:
     body.inertia = [izz, izz, izz]
     z0 = cfg.bottom_clearance + cfg.radius
     z1 = cfg.height - cfg.radius
-    # The collision capsule is the body (radius) plus a skin: MJX's capsule-box collider reports only
-    # penetrating contacts (dist = 1 otherwise, so geom margins are ignored; measured), hence the
-    # early-contact zone is built into the radius. For capsule-box this equals a native margin.
-    geom = body.add_geom(
+    capsule = cfg.collider == "capsule"  # the collision model of runs before 2026-12-02
+    body_geom = body.add_geom(
         name=AGENT_GEOM,
         type=mujoco.mjtGeom.mjGEOM_CAPSULE,
-        size=[cfg.radius + cfg.contact_skin, 0.0, 0.0],
+        size=[cfg.radius + (cfg.contact_skin if capsule else 0.0), 0.0, 0.0],
         fromto=[0.0, 0.0, z0, 0.0, 0.0, z1],
     )
-    geom.rgba = list(cfg.agent_rgba)
-    geom.contype, geom.conaffinity = 1, 0
+    body_geom.rgba = list(cfg.agent_rgba)
+    body_geom.contype, body_geom.conaffinity = 0, 0
+    geom = body_geom
+    if not capsule:
+        # The collider: a sphere at mid-height against blockers that span the agent's whole height
+        # (_physics_model), i.e. a cylinder against prisms in the plane the agent moves in.
+        geom = body.add_geom(
+            name=AGENT_COLLIDER,
+            type=mujoco.mjtGeom.mjGEOM_SPHERE,
+            size=[cfg.radius + cfg.contact_skin, 0.0, 0.0],
+            pos=[0.0, 0.0, 0.5 * (cfg.bottom_clearance + cfg.height)],
+        )
+        geom.rgba = [0.0, 0.0, 0.0, 0.0]  # invisible to rays and renderers
+        geom.group = 3
+    # Its radius is the body's plus a skin: MJX's colliders report only penetrating contacts (geom
+    # margins are ignored), hence the early-contact zone is built into the radius.
     geom.condim = 1  # frictionless: turning in contact is free, walls are slid along
     geom.priority = 10  # the agent's contact parameters win over the scene's
     geom.solref = list(cfg.contact_solref)
@@ -222,11 +251,62 @@ def _geom_world_aabb(m: mujoco.MjModel, d: mujoco.MjData) -> tuple[np.ndarray, n
     return d.geom_xpos.copy(), half
 
 
+def _physics_model(spec: mujoco.MjSpec, m: mujoco.MjModel, d: mujoco.MjData, blockers, cfg: SimConfig):
+    """`spec` recompiled with every upright blocker box (and vertical capsule) grown about its centre
+    in z until it spans the agent's height (+ 5 cm each way). Returns (model, indices of the grown
+    geoms); centres, orientations and every other size are unchanged (checked).
+
+    Why: with every blocker a prism over the agent's height, a sphere at mid-height (the agent's
+    collider) meets each one exactly where a cylinder of the same radius would, so collisions are
+    planar, the agent's motion is. MJX's sphere-box collider is exact for that; its capsule-box
+    collider is not: near a vertical box edge it drops the contact when the edge direction is within
+    8 deg of the nearest face's normal (it then prefers a face contact that the face's side planes
+    clip away), and at boxes whose top lies within the capsule's height it can keep a horizontal
+    edge that fails its Voronoi test: the agent walked 0.2 m into a bed corner where native MuJoCo
+    stops it (tests/test_sim_warp.py). Only contacts that a capsule would make with its rounded
+    ends (box tops below 0.25 m, bottoms above 1.0 m) move out, by < 2.2 cm. Geom centres are
+    unchanged, so the carried geom poses, which the camera reads, are the true ones.
+    """
+    zlo = cfg.bottom_clearance - cfg.contact_skin  # the agent's lowest point
+    zhi = cfg.height + cfg.contact_skin  # and its highest
+    box, capsule = int(mujoco.mjtGeom.mjGEOM_BOX), int(mujoco.mjtGeom.mjGEOM_CAPSULE)
+    if len(spec.geoms) != m.ngeom:
+        raise RuntimeError("the spec's geoms do not map one to one onto the compiled model's")
+    grown = []
+    for g in blockers:
+        if m.geom_type[g] not in (box, capsule) or not np.isnan(spec.geoms[g].fromto[0]):
+            continue  # spheres, and geoms given by fromto, collide as they are
+        rot = d.geom_xmat[g].reshape(3, 3)
+        axis = 2 if m.geom_type[g] == capsule else int(np.abs(rot[2]).argmax())
+        if abs(rot[2, axis]) < 1.0 - 1e-6:
+            continue  # tilted: collides as it is
+        cz = d.geom_xpos[g, 2]
+        half = m.geom_size[g, 1 if m.geom_type[g] == capsule else axis]  # a capsule's segment
+        if cz - half > zlo or cz + half < zhi:
+            size = np.array(spec.geoms[g].size)
+            grown.append((g, size.copy()))
+            size[1 if m.geom_type[g] == capsule else axis] = max(cz - zlo, zhi - cz) + 0.05
+            spec.geoms[g].size = size
+    mp = spec.compile()
+    for g, size in grown:  # the caller's spec keeps the true geometry
+        spec.geoms[g].size = size
+    grown = np.asarray([g for g, _ in grown], np.int64)
+    same = np.ones(m.ngeom, bool)
+    same[grown] = False
+    if not (
+        np.array_equal(mp.geom_pos, m.geom_pos)
+        and np.array_equal(mp.geom_quat, m.geom_quat)
+        and np.array_equal(mp.geom_size[same], m.geom_size[same])
+    ):
+        raise RuntimeError("growing blockers to the agent's height moved or resized other geoms")
+    return mp, grown
+
+
 def _auto_max_geom_pairs(m, d, agent_geom, blockers, cfg: SimConfig, grid: float = 0.05) -> int:
     """Smallest K for MJX's bounding-sphere top-K broadphase that keeps every possible contact.
 
     For agent positions on a grid covering the blockers' extent, a blocker can be in contact only if
-    its AABB overlaps the collision capsule's AABB; MJX ranks pairs by
+    its AABB overlaps the collider's AABB; MJX ranks pairs by
     |c_agent - c_geom| - rbound_agent - rbound_geom. K = 1 + the worst rank of a possibly-touching
     blocker over all positions (ties counted against us).
     """
@@ -238,8 +318,7 @@ def _auto_max_geom_pairs(m, d, agent_geom, blockers, cfg: SimConfig, grid: float
     hi = (cb + hb)[:, :2].max(0) + cfg.radius
     xs = np.arange(lo[0], hi[0] + grid, grid)
     ys = np.arange(lo[1], hi[1] + grid, grid)
-    zc = 0.5 * (cfg.bottom_clearance + cfg.height)
-    zh = 0.5 * (cfg.height - cfg.bottom_clearance) + cfg.contact_skin
+    zc, zh = c[agent_geom, 2], h[agent_geom, 2]
     rb = m.geom_rbound[blockers]
     rb_agent = m.geom_rbound[agent_geom]
     reach = cfg.radius + cfg.contact_skin
@@ -267,7 +346,8 @@ class Simulator:
 
     Attributes: `mj_model` (mujoco.MjModel incl. agent), `mjx_model`, `config`, `scene_ngeom` (the
     scene file's geoms are geoms [0, scene_ngeom), the agent's come after), `agent_geoms` (np int),
-    `agent_body`, `blockers` (np int: geoms that collide with the agent), `max_geom_pairs`,
+    `agent_body`, `blockers` (np int: geoms that collide with the agent), `physics_model` (mj_model
+    with blockers grown to the agent's height, what MJX steps), `grown_blockers`, `max_geom_pairs`,
     `nmocap`, `default_mocap_pos` / `default_mocap_quat` (the file's mocap poses).
     """
 
@@ -275,6 +355,7 @@ class Simulator:
         cfg = config
         if cfg.substeps < 3:
             raise ValueError("substeps must be >= 3 for the velocity plan")
+        check_collider(cfg.collider)
         scene_model = spec.compile()
         self.scene_ngeom = scene_model.ngeom
         _add_agent(spec, cfg)
@@ -290,7 +371,8 @@ class Simulator:
         self.config = cfg
         self.agent_body = m.body(AGENT_BODY).id
         self.agent_geoms = np.nonzero(m.geom_bodyid == self.agent_body)[0]
-        agent_geom = m.geom(AGENT_GEOM).id
+        agent_geom = m.geom(AGENT_GEOM if cfg.collider == "capsule" else AGENT_COLLIDER).id
+        self.collider_geom = agent_geom
         self.qpos_adr = np.array([m.jnt_qposadr[m.joint(j).id] for j in AGENT_JOINTS])
         self.dof_adr = np.array([m.jnt_dofadr[m.joint(j).id] for j in AGENT_JOINTS])
 
@@ -305,27 +387,35 @@ class Simulator:
         )
         is_scene = np.arange(m.ngeom) < self.scene_ngeom
         block = is_scene & ~is_floor & ~is_mocap & reaches
-        m.geom_contype[:] = 0
-        m.geom_conaffinity[:] = np.where(block, 1, 0)
-        m.geom_contype[agent_geom] = 1
-        m.geom_conaffinity[agent_geom] = 0
         self.blockers = np.nonzero(block)[0]
+        mp, self.grown_blockers = m, np.zeros(0, np.int64)
+        if cfg.collider == "sphere":
+            mp, self.grown_blockers = _physics_model(spec, m, d, self.blockers, cfg)
+        for model in (m, mp):
+            model.geom_contype[:] = 0
+            model.geom_conaffinity[:] = np.where(block, 1, 0)
+            model.geom_contype[agent_geom] = 1
+            model.geom_conaffinity[agent_geom] = 0
 
         k = cfg.max_geom_pairs
         if k is None:
-            k = _auto_max_geom_pairs(m, d, agent_geom, self.blockers, cfg)
+            dp = mujoco.MjData(mp)
+            mujoco.mj_kinematics(mp, dp)
+            k = _auto_max_geom_pairs(mp, dp, agent_geom, self.blockers, cfg)
         k = int(max(1, min(k, max(len(self.blockers), 1))))
-        m.numeric_data[m.numeric("max_geom_pairs").adr[0]] = float(k)
+        for model in (m, mp):
+            model.numeric_data[model.numeric("max_geom_pairs").adr[0]] = float(k)
         self.max_geom_pairs = k
 
         self.mj_model = m
-        self.mjx_model = mjx.put_model(m)
+        self.physics_model = mp
+        self.mjx_model = mjx.put_model(mp)
         self.physics = resolve_physics(cfg.physics)
         self._warp = None
         if self.physics == "warp":
             from hron_jax.sim_warp import WarpPhysics
 
-            self._warp = WarpPhysics(m, cfg.warp_contacts_per_env)
+            self._warp = WarpPhysics(mp, cfg.warp_contacts_per_env)
         self.nmocap = m.nmocap
         self.default_mocap_pos = (
             np.array(m.body_pos[m.body_mocapid >= 0][np.argsort(m.body_mocapid[m.body_mocapid >= 0])])
@@ -337,7 +427,7 @@ class Simulator:
             if m.nmocap
             else np.zeros((0, 4))
         )
-        self._template = mjx.put_data(m, mujoco.MjData(m))
+        self._template = mjx.put_data(mp, mujoco.MjData(mp))
         self._ctrl_profile = jnp.asarray(control_profile(cfg), jnp.float32)
 
     # ------------------------------------------------------------------ constructors

@@ -206,10 +206,43 @@ def test_init_places_mocap_objects(sim, fns):
     np.testing.assert_allclose(p, [0, 0, 0], atol=1e-7)
 
 
+def test_table_corner_blocks_like_a_wall(sim, fns):
+    """Driving past the table top's corner (a slab at 0.70-0.75 m) with the agent's centre 1 cm
+    outside the slab's side: it stops at ~R from the corner. MJX's capsule-box collider lost exactly
+    this contact (test_sim_native.py), which the sphere-on-prisms collision model avoids."""
+    corner = np.array([0.6, 3.6])
+    d = _pose(fns, sim, [corner[0] + 0.01, corner[1] - R - 0.35, math.pi / 2])
+    for _ in range(4):
+        d = fns["step"](d, jnp.int32(S.FORWARD))
+        p = np.asarray(sim.agent_pose(d))
+        assert np.linalg.norm(p[:2] - corner) >= R - 0.01, p
+    assert np.linalg.norm(p[:2] - corner) < R + 0.04, p  # it reached the corner
+
+
+def test_physics_model_blockers_span_the_agent(sim):
+    """The physics model grows the table (slab and leg) to prisms over the agent's height about
+    their centres; walls (already taller) and the model the camera sees keep their sizes."""
+    m, mp = sim.mj_model, sim.physics_model
+    table = list(range(m.body("furniture:table:0").geomadr[0], m.body("furniture:table:0").geomadr[0] + 2))
+    assert sorted(sim.grown_blockers) == table
+    d = mujoco.MjData(mp)
+    mujoco.mj_kinematics(mp, d)
+    cfg = sim.config
+    for g in table:
+        assert d.geom_xpos[g, 2] - mp.geom_size[g, 2] < cfg.bottom_clearance - cfg.contact_skin
+        assert d.geom_xpos[g, 2] + mp.geom_size[g, 2] > cfg.height + cfg.contact_skin
+    np.testing.assert_array_equal(m.geom_size[table, 2], [0.025, 0.35])
+    np.testing.assert_array_equal(mp.geom_pos, m.geom_pos)
+    wall = m.geom("wall:east").id
+    np.testing.assert_array_equal(mp.geom_size[wall], m.geom_size[wall])
+
+
 def test_contact_filter(sim):
-    m = sim.mj_model
-    agent_geom = m.geom(S.AGENT_GEOM).id
+    m = sim.physics_model
+    agent_geom = sim.collider_geom
     assert list(np.nonzero(m.geom_contype)[0]) == [agent_geom]
+    assert m.geom_type[agent_geom] == mujoco.mjtGeom.mjGEOM_SPHERE
+    np.testing.assert_array_equal(sim.mj_model.geom_contype, m.geom_contype)
     floor = m.body("room:living_room:0").geomadr[0]
     apple = m.body("object:apple:0").geomadr[0]
     assert floor not in sim.blockers and apple not in sim.blockers
@@ -230,11 +263,11 @@ def test_auto_max_geom_pairs_keeps_every_contact():
     """Native MuJoCo (all pairs, no broadphase cap) vs MJX's top-K by bounding-sphere distance:
     at random agent positions across the house, every blocker in contact ranks within K."""
     sim = S.Simulator.from_file(HOUSE)
-    m = sim.mj_model
+    m = sim.physics_model
     assert sim.max_geom_pairs < len(sim.blockers) // 4  # culling actually removes pairs
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
-    agent_geom = m.geom(S.AGENT_GEOM).id
+    agent_geom = sim.collider_geom
     lo = d.geom_xpos[sim.blockers, :2].min(0)
     hi = d.geom_xpos[sim.blockers, :2].max(0)
     rng = np.random.default_rng(0)

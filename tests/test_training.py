@@ -449,6 +449,7 @@ NAV_BAD_VALUES = {  # fields of the navigation env, dotted into its sub-configs
         'camera.vfov_deg=190',
         'camera.k_band=0',
         'sim.physics=mjx',
+        'sim.collider=box',
         'sim.warp_contacts_per_env=0',
         'camera.nope=1',
         'num_distractors=-2',
@@ -512,6 +513,16 @@ def test_config_json_of_the_flat_format_is_upgraded():
     assert TrainConfig.from_dict(old) == new
     assert new.env.camera.width == new.env.camera.height == 8 and new.env.premap and new.distractors
     assert new.network.pooling == 'mean' and new.network.hidden == 16
+
+
+def test_config_json_before_physics_fields_names_what_ran():
+    """A typed config.json written before SimConfig had `physics` and `collider` loads as what
+    those runs ran: MJX's JAX implementation, the agent colliding as its capsule."""
+    d = make_config('exploratory').to_dict()
+    del d['env']['sim']['physics'], d['env']['sim']['collider']
+    old = TrainConfig.from_dict(d)
+    assert (old.env.sim.physics, old.env.sim.collider) == ('jax', 'capsule')
+    assert make_config('exploratory').env.sim.collider == 'sphere'
 
 
 def test_paper_preset_sets_camera_hgt_and_ppo_and_flags_override_it():

@@ -210,7 +210,7 @@ def profile_steps(profile: str, task: str) -> int:
 # a run's config with the paper preset).
 _CELL_FIELDS = ('env.distractors', 'env.premap', 'env.task', 'env.metric_map', 'env.image_obs')
 # How the physics is computed, not what the paper set: named on its own in `settings`.
-_IMPL_FIELDS = ('env.sim.physics', 'env.sim.warp_contacts_per_env')
+_IMPL_FIELDS = ('env.sim.physics', 'env.sim.warp_contacts_per_env', 'env.sim.collider')
 
 
 def _sci(x: float) -> str:
@@ -253,6 +253,8 @@ def settings(cfg) -> dict[str, str]:
     if cfg.task != 'choice':
         out['camera'] = f'camera {cfg.env.camera.width}x{cfg.env.camera.height}'
         out['physics'] = 'physics ' + ('MJX-Warp' if cfg.env.sim.physics == 'warp' else 'MJX (JAX)')
+        if cfg.env.sim.collider == 'capsule':  # runs before 2026-12-02 (README, Physics)
+            out['physics'] += ', capsule collider'
     if n.use_graph:
         out['graph'] = (
             f'HGT hidden {n.hidden}, {n.heads} heads, {n.gnn_layers} layers, {n.hgt_softmax} softmax'

@@ -6,7 +6,7 @@ native MuJoCo in a Python loop (mj_step substeps + mj_multiRay on the same rays,
 with the ratio. Poses are random collision-free positions of the scene (seeded), actions are
 uniform over the 5 actions. Per num_envs B:
     physics     jit(vmap(sim.step)) on B envs, per --physics implementation (MJX = its JAX
-                implementation, MJX-Warp = SimConfig.physics 'warp')
+                implementation, MJX-Warp = SimConfig.physics 'warp') and --collider model
     render/<b>  jit(vmap(camera.render)) on B envs, backend b in
                 kernel (column- and band-culled analytic kernel, CameraConfig.k_box /
                 k_band), kernel-columns (the same with one band per column: what the row
@@ -98,10 +98,10 @@ def synthetic_house_xml(n_boxes: int = 300, seed: int = 0, rooms: int = 3) -> st
 
 
 def _free_poses(sim, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n random (x, y, yaw) where the agent's capsule touches no blocker (native collision check)."""
+    """n random (x, y, yaw) where the agent touches no blocker (native collision check)."""
     import mujoco
 
-    m = sim.mj_model
+    m = sim.physics_model
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
     floor = [g for g in range(sim.scene_ngeom) if g not in set(sim.blockers)]
@@ -126,7 +126,8 @@ class _Native:
         from .. import sim as S
 
         self.mujoco, self.sim, self.cam = mujoco, sim, cam
-        self.m = sim.mj_model
+        self.m = sim.physics_model  # what MJX steps; rays go to the scene as it is (same geom poses)
+        self.m_scene = sim.mj_model
         self.datas = []
         for p in poses:
             d = mujoco.MjData(self.m)
@@ -176,7 +177,7 @@ class _Native:
         o = np.array([x + cfg.forward_offset * cy, y + cfg.forward_offset * sy, cfg.mount_height])
         vec = (self.dirs_cam @ rot.T).ravel()
         self.mujoco.mj_multiRay(
-            self.m,
+            self.m_scene,
             d,
             o,
             vec,
@@ -220,25 +221,32 @@ def bench_env(
     seed: int = 0,
     log=progress,
     physics=("jax",),
+    colliders=("sphere",),
 ):
     """Yields rows {num_envs, what, s_per_batch, steps_per_s, native_steps_per_s, ratio}, each as
-    soon as it is measured (see the module docstring)."""
+    soon as it is measured (see the module docstring). One physics / env row per (physics,
+    collider) pair; render rows and native rows use the first pair's model."""
     import jax
     import jax.numpy as jnp
 
     from .. import sensors as SN
     from ..sim import SimConfig, Simulator
 
-    def simulator(impl):
-        cfg = SimConfig(physics=impl)
+    def simulator(impl, collider):
+        cfg = SimConfig(physics=impl, collider=collider)
         return (
             Simulator.from_file(scene_path, cfg)
             if scene_path
             else Simulator.from_xml(synthetic_house_xml(), cfg)
         )
 
-    sims = {impl: simulator(impl) for impl in physics}
-    sim = sims[physics[0]]
+    label = {"jax": "MJX", "warp": "MJX-Warp"}
+    sims = {  # row label -> Simulator
+        label[impl] + (f", {collider} collider" if len(colliders) > 1 else ""): simulator(impl, collider)
+        for collider in colliders
+        for impl in physics
+    }
+    sim = next(iter(sims.values()))
     if scene_path:
         try:
             from ..scenes import load_scene
@@ -252,14 +260,15 @@ def bench_env(
     print(
         f"scene: {scene_path or 'synthetic_house_xml()'}: {m.ngeom} geoms "
         f"({np.bincount(m.geom_type, minlength=7)[[6, 2, 3]].tolist()} box/sphere/capsule), "
-        f"{len(sim.blockers)} blockers, MJX max_geom_pairs K={sim.max_geom_pairs}, "
-        f"{sim.config.substeps} substeps/step",
+        f"{len(sim.blockers)} blockers, MJX max_geom_pairs K="
+        + " / ".join(f"{s.max_geom_pairs} ({name})" for name, s in sims.items())
+        + f", {sim.config.substeps} substeps/step",
         flush=True,
     )
     rng = np.random.default_rng(seed)
     base = SN.CameraConfig(width=width, height=height)
     n_box = int((m.geom_type == 6).sum())
-    cams = {}
+    cfgs = {}
     for b in backends:
         if b == "kernel":
             cfg = base
@@ -271,7 +280,13 @@ def bench_env(
             cfg = dataclasses.replace(base, backend="mjx")
         else:
             raise ValueError(f"unknown backend {b!r}")
-        cams[b] = SN.Camera.for_simulator(sim, cfg, scene=scene)
+        cfgs[b] = cfg
+    # a camera per model size: the colliders' models differ by one agent geom
+    cams = {
+        (name, b): SN.Camera.for_simulator(s, c, scene=scene)
+        for name, s in sims.items()
+        for b, c in cfgs.items()
+    }
     print(
         f"camera: {width}x{height}, vfov {base.vfov_deg} deg, max_depth {base.max_depth} m, "
         f"k_box {base.k_box}",
@@ -282,7 +297,8 @@ def bench_env(
     inputs = [
         (B, _free_poses(sim, B, rng), rng.integers(0, 5, size=(steps, B)).astype(np.int32)) for B in num_envs
     ]
-    nat = _Native(sim, cams[backends[0]], _free_poses(sim, native_envs, rng))
+    first = next(iter(sims))
+    nat = _Native(sim, cams[first, backends[0]], _free_poses(sim, native_envs, rng))
     nat_acts = rng.integers(0, 5, size=(max(steps // 2, 2), native_envs))
     nat_t = {w: nat.time(nat_acts, w, repeats) for w in ("physics", "render", "env")}
 
@@ -297,15 +313,15 @@ def bench_env(
             ratio=sps / native,
         )
 
-    init = jax.jit(jax.vmap(sim.init))
-    pose_fn = jax.jit(jax.vmap(sim.agent_pose))
-    phys = {impl: jax.jit(jax.vmap(s.step)) for impl, s in sims.items()}
-    label = {"jax": "MJX", "warp": "MJX-Warp"}
+    fns = {
+        name: (jax.jit(jax.vmap(s.init)), jax.jit(jax.vmap(s.step)), jax.jit(jax.vmap(s.agent_pose)))
+        for name, s in sims.items()
+    }
     for B, poses, acts in inputs:
-        d0 = init(jnp.asarray(poses))
-        for impl, step in phys.items():
-            _, t_c = timed(lambda: step(d0, jnp.asarray(acts[0])))
-            log(f"B={B}: physics/{impl} compile {t_c:.1f} s")
+        d0 = {name: init(jnp.asarray(poses)) for name, (init, _, _) in fns.items()}
+        for name, (_, step, _) in fns.items():
+            _, t_c = timed(lambda: step(d0[name], jnp.asarray(acts[0])))
+            log(f"B={B}: physics ({name}) compile {t_c:.1f} s")
 
             # physics: a chain of steps (each call consumes the previous data)
             def run_phys(d, step=step):
@@ -313,30 +329,33 @@ def bench_env(
                     d = step(d, jnp.asarray(a))
                 return d
 
-            t = best_time(lambda: run_phys(d0), repeats) / steps
-            yield row(B, f"physics ({label[impl]})", t, "physics")
-        d_end = run_phys(d0)  # the last physics' end state: every render row renders the same frames
-        p_end = pose_fn(d_end)
+            t = best_time(lambda: run_phys(d0[name]), repeats) / steps
+            yield row(B, f"physics ({name})", t, "physics")
+        # the first model's end state: every render row renders the same frames
+        d_end = fns[first][1](d0[first], jnp.asarray(acts[0]))
+        for a in acts[1:]:
+            d_end = fns[first][1](d_end, jnp.asarray(a))
+        p_end = fns[first][2](d_end)
 
-        for b, cam in cams.items():
-            rend = jax.jit(jax.vmap(cam.render))
-            out, t_c = timed(lambda: rend(d_end, p_end))
+        for b in backends:
+            rend = {name: jax.jit(jax.vmap(cams[name, b].render)) for name in sims}
+            out, t_c = timed(lambda: rend[first](d_end, p_end))
             log(
                 f"B={B}: render/{b} compile {t_c:.1f} s, "
                 f"uncertain rays {int(np.asarray(out.uncertain).sum())}"
             )
-            yield row(B, f"render/{b}", time_calls(rend, [(d_end, p_end)] * steps, repeats), "render")
+            yield row(B, f"render/{b}", time_calls(rend[first], [(d_end, p_end)] * steps, repeats), "render")
 
-            for impl, step in phys.items():
+            for name, (_, step, pose_fn) in fns.items():
 
-                def run_env(d, step=step):
+                def run_env(d, step=step, rend=rend[name], pose_fn=pose_fn):
                     for a in acts:
                         d = step(d, jnp.asarray(a))
                         o = rend(d, pose_fn(d))
                     return d, o
 
-                what = f"env/{b}" + (f" ({label[impl]})" if len(phys) > 1 else "")
-                yield row(B, what, best_time(lambda: run_env(d0), repeats) / steps, "env")
+                what = f"env/{b}" + (f" ({name})" if len(fns) > 1 else "")
+                yield row(B, what, best_time(lambda: run_env(d0[name]), repeats) / steps, "env")
 
     # native MuJoCo reference (single core, Python loop over envs), measured above
     for w, what in (
@@ -381,6 +400,13 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--physics", nargs="+", default=["jax"], choices=["jax", "warp"], help="MJX implementation(s)"
     )
+    p.add_argument(
+        "--collider",
+        nargs="+",
+        default=["sphere"],
+        choices=["sphere", "capsule"],
+        help="SimConfig.collider(s): the agent's collision model",
+    )
 
 
 def run(a: argparse.Namespace) -> None:
@@ -397,6 +423,7 @@ def run(a: argparse.Namespace) -> None:
             tuple(a.backends),
             a.native_envs,
             physics=tuple(a.physics),
+            colliders=tuple(a.collider),
         ),
         format_row,
     )
