@@ -61,8 +61,9 @@ main() {
     --log-every 1 --compile-cache none --no-progress)
   for s in "${STAGES[@]}"; do
     case $s in
-      env) step "$(box 150)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
-        --height 128 --backends kernel kernel-columns --native-envs 4 --steps 10 --repeats 2 ;;
+      env) step "$(box 200)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
+        --height 128 --backends kernel kernel-columns --collider sphere capsule --native-envs 4 \
+        --steps 10 --repeats 2 ;;
       env-warp) step "$(box 200)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
         --height 128 --backends kernel --physics jax warp --native-envs 4 --steps 10 --repeats 2 ;;
       train32w) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
