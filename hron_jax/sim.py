@@ -38,7 +38,10 @@ every candidate pair every substep (its CPU cost scales with pairs), so the mode
 numeric `max_geom_pairs` = K: per substep MJX keeps the K pairs of smallest bounding-sphere distance
 (lax.top_k). K is chosen at build time (`_auto_max_geom_pairs`) so that, for agent positions on a
 5 cm grid over the whole scene, every blocker whose AABB could touch the collider ranks within the
-top K: culling never drops a live contact.
+top K: culling never drops a live contact. `SimConfig.collider='capsule'` is the collision model of
+runs before 2026-12-02 (config.json files without the field load as it): no sphere, the capsule
+(radius plus skin) collides against the true boxes, and MJX's JAX physics then misses contacts near
+box edges (README, Physics).
 
 Control scheme: deadbeat velocity plan on implicit velocity servos
 ------------------------------------------------------------------
@@ -257,13 +260,13 @@ def _physics_model(spec: mujoco.MjSpec, m: mujoco.MjModel, d: mujoco.MjData, blo
     geoms); centres, orientations and every other size are unchanged (checked).
 
     Why: with every blocker a prism over the agent's height, a sphere at mid-height (the agent's
-    collider) meets each one exactly where a cylinder of the same radius would, so collisions are
-    planar, the agent's motion is. MJX's sphere-box collider is exact for that; its capsule-box
+    collider) meets each one exactly where a cylinder of the same radius would: collision is planar,
+    as the agent's motion is. MJX's sphere-box collider is exact for that; its capsule-box
     collider is not: near a vertical box edge it drops the contact when the edge direction is within
     8 deg of the nearest face's normal (it then prefers a face contact that the face's side planes
     clip away), and at boxes whose top lies within the capsule's height it can keep a horizontal
     edge that fails its Voronoi test: the agent walked 0.2 m into a bed corner where native MuJoCo
-    stops it (tests/test_sim_warp.py). Only contacts that a capsule would make with its rounded
+    stops it (tests/test_sim_native.py). Only contacts that a capsule would make with its rounded
     ends (box tops below 0.25 m, bottoms above 1.0 m) move out, by < 2.2 cm. Geom centres are
     unchanged, so the carried geom poses, which the camera reads, are the true ones.
     """

@@ -1,6 +1,7 @@
-"""Simulator: exact discrete motions in free space, walls stop the agent without penetration or
-tunnelling, no velocity carries over, vmap == single runs, contact filtering and the auto-chosen
-MJX broadphase K; the behaviour tests run on MJX's JAX implementation and on MJX-Warp. CPU; the
+"""Simulator: exact discrete motions in free space, walls and table corners stop the agent without
+penetration or tunnelling, no velocity carries over, vmap == single runs, the collision model
+(sphere on grown blockers; the older capsule), contact filtering and the auto-chosen MJX
+broadphase K; the behaviour tests run on MJX's JAX implementation and on MJX-Warp. CPU; the
 jitted step / init are compiled once per implementation (~1 min in all)."""
 
 from __future__ import annotations
@@ -256,6 +257,20 @@ def test_contact_filter(sim):
     assert all(agent_geom in p[:2] for p in pairs)
     assert 1 <= sim.max_geom_pairs <= len(sim.blockers)
     assert m.numeric_data[m.numeric("max_geom_pairs").adr[0]] == sim.max_geom_pairs
+
+
+def test_capsule_collider_is_the_model_before_spheres():
+    """collider='capsule' (runs before 2026-12-02): one agent geom, the capsule grown by the skin,
+    colliding against the scene's own boxes (no physics model of its own)."""
+    sim = S.Simulator.from_xml(SCENE, S.SimConfig(physics="jax", collider="capsule"))
+    m = sim.mj_model
+    assert sim.physics_model is m and len(sim.grown_blockers) == 0
+    assert list(sim.agent_geoms) == [sim.collider_geom] == [m.geom(S.AGENT_GEOM).id]
+    assert m.geom_type[sim.collider_geom] == mujoco.mjtGeom.mjGEOM_CAPSULE
+    assert m.geom_size[sim.collider_geom, 0] == pytest.approx(R + sim.config.contact_skin)
+    assert list(np.nonzero(m.geom_contype)[0]) == [sim.collider_geom]
+    with pytest.raises(ValueError, match="unknown collider 'box'"):
+        S.Simulator.from_xml(SCENE, S.SimConfig(collider="box"))
 
 
 @pytest.mark.skipif(not os.path.exists(HOUSE), reason="scenes/house.xml not present")
