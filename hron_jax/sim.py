@@ -280,15 +280,16 @@ def _physics_model(spec: mujoco.MjSpec, m: mujoco.MjModel, d: mujoco.MjData, blo
         if m.geom_type[g] not in (box, capsule) or not np.isnan(spec.geoms[g].fromto[0]):
             continue  # spheres, and geoms given by fromto, collide as they are
         rot = d.geom_xmat[g].reshape(3, 3)
-        axis = 2 if m.geom_type[g] == capsule else int(np.abs(rot[2]).argmax())
+        is_capsule = m.geom_type[g] == capsule
+        axis = 2 if is_capsule else int(np.abs(rot[2]).argmax())  # the local axis closest to z
         if abs(rot[2, axis]) < 1.0 - 1e-6:
             continue  # tilted: collides as it is
+        i = 1 if is_capsule else axis  # the size entry of that half extent (a capsule's segment)
         cz = d.geom_xpos[g, 2]
-        half = m.geom_size[g, 1 if m.geom_type[g] == capsule else axis]  # a capsule's segment
-        if cz - half > zlo or cz + half < zhi:
+        if cz - m.geom_size[g, i] > zlo or cz + m.geom_size[g, i] < zhi:
             size = np.array(spec.geoms[g].size)
             grown.append((g, size.copy()))
-            size[1 if m.geom_type[g] == capsule else axis] = max(cz - zlo, zhi - cz) + 0.05
+            size[i] = max(cz - zlo, zhi - cz) + 0.05
             spec.geoms[g].size = size
     mp = spec.compile()
     for g, size in grown:  # the caller's spec keeps the true geometry
@@ -401,10 +402,8 @@ class Simulator:
             model.geom_conaffinity[agent_geom] = 0
 
         k = cfg.max_geom_pairs
-        if k is None:
-            dp = mujoco.MjData(mp)
-            mujoco.mj_kinematics(mp, dp)
-            k = _auto_max_geom_pairs(mp, dp, agent_geom, self.blockers, cfg)
+        if k is None:  # d's geom poses are mp's too (same centres); the sizes and rbounds are mp's
+            k = _auto_max_geom_pairs(mp, d, agent_geom, self.blockers, cfg)
         k = int(max(1, min(k, max(len(self.blockers), 1))))
         for model in (m, mp):
             model.numeric_data[model.numeric("max_geom_pairs").adr[0]] = float(k)

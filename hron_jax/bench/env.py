@@ -281,12 +281,11 @@ def bench_env(
         else:
             raise ValueError(f"unknown backend {b!r}")
         cfgs[b] = cfg
-    # a camera per model size: the colliders' models differ by one agent geom
-    cams = {
-        (name, b): SN.Camera.for_simulator(s, c, scene=scene)
-        for name, s in sims.items()
-        for b, c in cfgs.items()
-    }
+    # a camera per collider (its model has one agent geom more or less), shared by the physics
+    models = {}
+    for s in sims.values():
+        models.setdefault(s.config.collider, s)
+    cams = {(c, b): SN.Camera.for_simulator(s, cfgs[b], scene=scene) for c, s in models.items() for b in cfgs}
     print(
         f"camera: {width}x{height}, vfov {base.vfov_deg} deg, max_depth {base.max_depth} m, "
         f"k_box {base.k_box}",
@@ -298,7 +297,7 @@ def bench_env(
         (B, _free_poses(sim, B, rng), rng.integers(0, 5, size=(steps, B)).astype(np.int32)) for B in num_envs
     ]
     first = next(iter(sims))
-    nat = _Native(sim, cams[first, backends[0]], _free_poses(sim, native_envs, rng))
+    nat = _Native(sim, cams[sim.config.collider, backends[0]], _free_poses(sim, native_envs, rng))
     nat_acts = rng.integers(0, 5, size=(max(steps // 2, 2), native_envs))
     nat_t = {w: nat.time(nat_acts, w, repeats) for w in ("physics", "render", "env")}
 
@@ -318,37 +317,38 @@ def bench_env(
         for name, s in sims.items()
     }
     for B, poses, acts in inputs:
+
+        def run_phys(d, step):  # a chain of steps (each call consumes the previous data)
+            for a in acts:
+                d = step(d, jnp.asarray(a))
+            return d
+
         d0 = {name: init(jnp.asarray(poses)) for name, (init, _, _) in fns.items()}
         for name, (_, step, _) in fns.items():
             _, t_c = timed(lambda: step(d0[name], jnp.asarray(acts[0])))
             log(f"B={B}: physics ({name}) compile {t_c:.1f} s")
-
-            # physics: a chain of steps (each call consumes the previous data)
-            def run_phys(d, step=step):
-                for a in acts:
-                    d = step(d, jnp.asarray(a))
-                return d
-
-            t = best_time(lambda: run_phys(d0[name]), repeats) / steps
+            t = best_time(lambda: run_phys(d0[name], step), repeats) / steps
             yield row(B, f"physics ({name})", t, "physics")
         # the first model's end state: every render row renders the same frames
-        d_end = fns[first][1](d0[first], jnp.asarray(acts[0]))
-        for a in acts[1:]:
-            d_end = fns[first][1](d_end, jnp.asarray(a))
+        d_end = run_phys(d0[first], fns[first][1])
         p_end = fns[first][2](d_end)
 
         for b in backends:
-            rend = {name: jax.jit(jax.vmap(cams[name, b].render)) for name in sims}
-            out, t_c = timed(lambda: rend[first](d_end, p_end))
+            rend = {c: jax.jit(jax.vmap(cams[c, b].render)) for c in models}
+            own = rend[sim.config.collider]
+            out, t_c = timed(lambda: own(d_end, p_end))
             log(
                 f"B={B}: render/{b} compile {t_c:.1f} s, "
                 f"uncertain rays {int(np.asarray(out.uncertain).sum())}"
             )
-            yield row(B, f"render/{b}", time_calls(rend[first], [(d_end, p_end)] * steps, repeats), "render")
+            yield row(B, f"render/{b}", time_calls(own, [(d_end, p_end)] * steps, repeats), "render")
 
+            for name, (_, _, pose_fn) in fns.items():  # the other colliders' cameras compile here
+                if sims[name].config.collider != sim.config.collider:
+                    jax.block_until_ready(rend[sims[name].config.collider](d0[name], pose_fn(d0[name])))
             for name, (_, step, pose_fn) in fns.items():
 
-                def run_env(d, step=step, rend=rend[name], pose_fn=pose_fn):
+                def run_env(d, step=step, rend=rend[sims[name].config.collider], pose_fn=pose_fn):
                     for a in acts:
                         d = step(d, jnp.asarray(a))
                         o = rend(d, pose_fn(d))
