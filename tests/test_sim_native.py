@@ -118,15 +118,25 @@ _CAPSULE_AT_EDGE = """
 """
 
 
+def _capsule_at_edge():
+    m = mujoco.MjModel.from_xml_string(_CAPSULE_AT_EDGE)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    return m, d
+
+
+def test_native_capsule_box_edge_contact():
+    """The reference for the xfail below: native MuJoCo reports the 1.9 cm penetration."""
+    _, d = _capsule_at_edge()
+    assert d.ncon > 0 and d.contact.dist[: d.ncon].min() < -0.018
+
+
 @pytest.mark.xfail(strict=True, reason="MJX's JAX capsule-box collider drops contacts near box edges")
 def test_mjx_capsule_box_edge_contact():
     """Why the agent does not collide as a capsule (sim._physics_model): here MJX keeps the vertical
     edge, finds its direction within 8 deg of the face normal, prefers the face contact, and the
     face's side planes clip it away. Fails loudly (strict) once a MuJoCo release fixes it."""
-    m = mujoco.MjModel.from_xml_string(_CAPSULE_AT_EDGE)
-    d = mujoco.MjData(m)
-    mujoco.mj_forward(m, d)
-    assert d.ncon > 0 and d.contact.dist[: d.ncon].min() < -0.018  # native: 1.9 cm penetration
+    m, d = _capsule_at_edge()
     dx = jax.jit(mjx.forward)(mjx.put_model(m), mjx.put_data(m, d))
     assert float(np.asarray(dx._impl.contact.dist).min()) < -0.018
 
