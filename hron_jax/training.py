@@ -65,8 +65,9 @@ class Programs(NamedTuple):
         """init(keys). init runs once per run, so it is compiled without LLVM optimisation: most
         of it is the threefry code of ~100 parameter initialisers and the episode sampler (70 %
         of its HLO). Measured (main exploratory config, 64 envs, 2-core VM): compile 11.6 ->
-        6.0 s, run 0.28 -> 0.40 s; its float rounding differs (initial params within 3e-6), the
-        same way on every run of a config."""
+        6.0 s, run 0.28 -> 0.40 s; with the classic emitters of FAST_COMPILE, 11.9 / 13.3 ->
+        9.8 / 8.7 s (two runs each, 2-core Xeon), run ~0.5 s either way. Its float rounding
+        differs (initial params within 3e-6), the same way on every run of a config."""
         if 'init' not in self.compiled:
             self.compiled['init'] = self.init.lower(keys).compile(dict(FAST_COMPILE))
         return self.compiled['init'](keys)
@@ -80,10 +81,19 @@ class Programs(NamedTuple):
         return self.compiled[n], time.perf_counter() - t
 
 
-# XLA:CPU options of --fast-compile: no LLVM optimisation. Measured on the choice task: compiles
-# ~3x faster (tiny model: 21 -> 5.5 s), runs ~2.7x slower at default model sizes. For tests and
-# debugging; float rounding differs, so it is part of the config (resume checks it).
-FAST_COMPILE = {'xla_backend_optimization_level': 0, 'xla_llvm_disable_expensive_passes': True}
+# XLA:CPU options of --fast-compile: no LLVM optimisation, and XLA's classic elemental emitters
+# instead of its MLIR fusion emitters (which, once LLVM no longer optimises, are the largest part
+# of the compile). Measured on the choice task, LLVM options alone: compiles ~3x faster (tiny model:
+# 21 -> 5.5 s), runs ~2.7x slower at default model sizes. The emitters on top (2-core Xeon, tiny
+# models, 1-update chunk / init compile s): choice 7.2 / 3.5 -> 3.8 / 2.4, directed 27.0 / 7.6 ->
+# 15.7 / 5.7, exploratory 23.3 / 7.5 -> 18.1 / 6.3; default exploratory model at 16 x 16: 37.7 ->
+# 21.5 s, but 34 -> 46 s per update. For tests and debugging; float rounding differs, so it is part
+# of the config (resume checks it).
+FAST_COMPILE = {
+    'xla_backend_optimization_level': 0,
+    'xla_llvm_disable_expensive_passes': True,
+    'xla_cpu_use_fusion_emitters': False,
+}
 
 
 def make_mesh(num_envs: int):
