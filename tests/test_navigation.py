@@ -3,7 +3,9 @@ goal satisfiability, distractors, oracle SR / SPL, determinism, vmap == single e
 
 Compiles are the cost here (MJX step on CPU), so every test shares a few jitted functions built in
 module-scoped fixtures: for each env one `run(episode, rng, actions)` = reset_to + rollout.unroll
-whose actions are scripted where >= 0 and the oracle's where -1, single and vmapped.
+whose actions are scripted where >= 0 and the oracle's where -1, single and vmapped, compiled with
+XLA's fast-compile options (measured, 16 envs: directed compile 25.5 -> 9.3 s, its 45 steps 0.3 ->
+1.7 s; exploratory 36.8 -> 11.4 s, its 220 steps 5.6 -> 24.6 s).
 """
 
 import jax
@@ -19,6 +21,7 @@ from hron_jax.envs.choice import ChoiceEnv
 from hron_jax.rollout import episode_ends, unroll
 from hron_jax.scenes import vocabulary as V
 from hron_jax.sim import BACKWARD, FORWARD, STOP
+from hron_jax.training import FAST_COMPILE
 
 ORACLE = -1
 DIRECTED_T = 45  # = the directed env's max_steps; oracle episodes end (and auto-reset) sooner
@@ -48,8 +51,8 @@ class Bundle:
         self.sample = jax.jit(env.sample_episode)
         self.sample_batch = jax.jit(jax.vmap(env.sample_episode))
         run = _make_run(env, num_steps)
-        self.run = jax.jit(run)
-        self.run_batch = jax.jit(jax.vmap(run))
+        self.run = jax.jit(run, compiler_options=FAST_COMPILE)
+        self.run_batch = jax.jit(jax.vmap(run), compiler_options=FAST_COMPILE)
 
     def oracle_batch(self, seed, n):
         keys = jax.random.split(jax.random.PRNGKey(seed), n)
