@@ -14,6 +14,7 @@ from hron_jax.envs.base import AutoResetWrapper, initial_state, next_state
 from hron_jax.envs.choice import ChoiceConfig, ChoiceEnv
 from hron_jax.ppo import PPOConfig, compute_gae, make_ppo, make_train
 from hron_jax.scenes import vocabulary as V
+from hron_jax.training import FAST_COMPILE
 
 
 # --- a small graph policy for the choice task (the project models are tested elsewhere) ---------
@@ -391,8 +392,9 @@ def test_vmapped_init_with_orthogonal_model_does_not_hang():
     model = make_model('rgbd_sg_attn', 2, ModelConfig(**SG_ATTN_SIZES))
     ppo = make_ppo(SMALL, ChoiceEnv(ChoiceConfig(distractors=True, max_distractors=6)), model)
     keys = jax.random.split(jax.random.PRNGKey(3), 2)
-    runners = jax.jit(jax.vmap(ppo.init))(keys)
-    single = jax.jit(ppo.init)(keys[1])
+    # compiled as train.py compiles init (Programs.initialize)
+    runners = jax.jit(jax.vmap(ppo.init), compiler_options=FAST_COMPILE)(keys)
+    single = jax.jit(ppo.init, compiler_options=FAST_COMPILE)(keys[1])
     assert _max_diff(jax.tree.map(lambda x: x[1], runners.params), single.params) == 0.0
 
 
