@@ -597,8 +597,8 @@ def test_hgt_softmax_reaches_the_model():
     cfg = ModelConfig(hidden=16, heads=1, gnn_layers=1, cnn_fc=(16, 16, 16), goal_fc=(16, 16, 16))
     joint = make_model("rgbd_sg_attn", 5, cfg)
     per = make_model("rgbd_sg_attn", 5, dataclasses.replace(cfg, hgt_softmax="per_relation"))
-    params = joint.init(jax.random.key(0), obs)
-    (lj, vj), (lp, vp) = joint.apply(params, obs), per.apply(params, obs)
+    params = jax.jit(joint.init)(jax.random.key(0), obs)
+    (lj, vj), (lp, vp) = jax.jit(joint.apply)(params, obs), jax.jit(per.apply)(params, obs)
     assert float(jnp.abs(lj - lp).max() + jnp.abs(vj - vp).max()) > 1e-6
 
 
