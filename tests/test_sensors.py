@@ -46,7 +46,7 @@ def _model_data(xml=None, path=None):
 
 
 def _render(cam, d, pose):
-    return cam.render_geoms(
+    return jax.jit(cam.render_geoms)(
         jnp.asarray(d.geom_xpos, jnp.float32),
         jnp.asarray(d.geom_xmat, jnp.float32),
         jnp.asarray(pose, jnp.float32),
@@ -383,7 +383,7 @@ def test_mjx_backend_matches_kernel(primitives):
     mx = mjx.put_model(m)
     dx = mjx.put_data(m, d)
     pose = jnp.asarray([0.5, -0.5, 0.3], jnp.float32)
-    k = SN.Camera(m, cfg).render(dx, pose)
+    k = jax.jit(SN.Camera(m, cfg).render)(dx, pose)
     r = jax.jit(SN.Camera(m, dataclasses.replace(cfg, backend="mjx"), mjx_model=mx).render)(dx, pose)
     np.testing.assert_allclose(np.asarray(k.depth), np.asarray(r.depth), atol=1e-4)
     assert (np.asarray(k.geom) != np.asarray(r.geom)).sum() <= 1
@@ -398,8 +398,9 @@ def test_vmap_equals_single_frames(primitives):
     xp = jnp.broadcast_to(jnp.asarray(d.geom_xpos, jnp.float32), (4, m.ngeom, 3))
     xm = jnp.broadcast_to(jnp.asarray(d.geom_xmat, jnp.float32), (4, m.ngeom, 9))
     batch = jax.jit(jax.vmap(cam.render_geoms))(xp, xm, poses)
+    single = jax.jit(cam.render_geoms)
     for i in range(4):
-        one = cam.render_geoms(xp[i], xm[i], poses[i])
+        one = single(xp[i], xm[i], poses[i])
         for a, b in zip(one, batch):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], atol=1e-5)
 
@@ -450,7 +451,7 @@ def test_simulator_integration_excludes_agent():
     mpos[scene.mocap_id[apple]] = [-2.0, 0.0, 0.795]  # on the table
     pose = jnp.asarray([-1.0, 0.0, math.pi], jnp.float32)  # 1 m from the apple, facing the table
     d = jax.jit(sim.init)(pose, jnp.asarray(mpos), jnp.asarray(np.tile([1.0, 0, 0, 0], (2, 1))))
-    out = cam.render(d, pose)
+    out = jax.jit(cam.render)(d, pose)
     geom = np.asarray(out.geom)
     assert not np.isin(geom, sim.agent_geoms).any()
     assert (np.asarray(out.instance) == apple).any()
