@@ -341,7 +341,7 @@ def test_collect_choice_records_one_step_episodes():
             goal_fc=(16, 16, 16),
         ),
     )
-    params = net.init(jax.random.PRNGKey(0), env.observation_example())
+    params = jax.jit(net.init)(jax.random.PRNGKey(0), env.observation_example())
     run = A.Run(
         run_dir=None,
         config=SimpleNamespace(task='choice'),
