@@ -46,6 +46,8 @@ def _model_data(xml=None, path=None):
 
 
 def _render(cam, d, pose):
+    # One frame of a new camera per call: a fresh jit of its bound method compiles each time (~1 s),
+    # still cheaper than the eager kernel; frames of one camera in a loop use a fixture's jit.
     return jax.jit(cam.render_geoms)(
         jnp.asarray(d.geom_xpos, jnp.float32),
         jnp.asarray(d.geom_xmat, jnp.float32),
