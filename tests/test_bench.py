@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hron_jax.bench.compile import deep_tracebacks, hlo_by_source, instruction_sources
+from hron_jax.bench.compile import deep_tracebacks, hlo_by_source, hlo_instructions, instruction_sources
 from hron_jax.bench.profile import op_times
 from hron_jax.ppo import compute_gae
 
@@ -39,6 +39,9 @@ def test_profiled_ops_are_attributed_to_their_source_module(tmp_path, deep_stack
         if s == 'ppo.py'
     )
     assert sum(hlo_by_source(fn.as_text()).values()) == len(sources)
+    # bench compile's count: the same instructions plus the parameters instruction_sources skips
+    parameters = sum(' parameter(' in line for line in fn.as_text().splitlines())
+    assert parameters >= 2 and hlo_instructions(fn.as_text()) == len(sources) + parameters
     jax.block_until_ready(fn(reward, value))
     with jax.profiler.trace(str(tmp_path)):
         jax.block_until_ready(fn(reward, value))

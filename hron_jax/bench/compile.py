@@ -12,9 +12,11 @@ the same options (--task, --model, --num-envs, --preset, --fast-compile):
                  epochs x minibatches scans), which contains all of the above
     init         the init program (env reset + parameter init) as train.py compiles it (without
                  LLVM optimisation, Programs.initialize); a run waits for init + chunk
-Prints: the Markdown table | stage | compile s | HLO text MB | as each stage is compiled (HLO text
-size: the optimised module's text, a proxy for how much XLA had to work through). Compile seconds
-include tracing and lowering. With --by-source, then a second table: the chunk's HLO instructions
+Prints: the Markdown table | stage | compile s | HLO text MB | HLO instructions | as each stage is
+compiled (the optimised module's text size and its instruction count, fused computations included:
+proxies for how much XLA had to work through; unlike seconds, which vary by tens of percent on a
+shared machine, they are the same in every run of the same code). Compile seconds include tracing
+and lowering. With --by-source, then a second table: the chunk's HLO instructions
 per source module (`hlo_by_source`), i.e. which part of the code makes the program big.
 """
 
@@ -27,7 +29,7 @@ from .common import stream_table
 
 
 def bench_compile(config):
-    """Yields {stage, compile_s, hlo_mb} per stage of the training program of `config`."""
+    """Yields {stage, compile_s, hlo_mb, instructions} per stage of the training program of `config`."""
     import jax
 
     from ..training import FAST_COMPILE, programs
@@ -66,7 +68,16 @@ def bench_compile(config):
         else:  # init as the Trainer compiles it (Programs.initialize)
             compiled = fn.lower(*args).compile(dict(FAST_COMPILE) if name == "init" else options)
         seconds = time.perf_counter() - t
-        yield dict(stage=name, compile_s=seconds, hlo_mb=len(compiled.as_text() or "") / 1e6)
+        text = compiled.as_text() or ""
+        yield dict(stage=name, compile_s=seconds, hlo_mb=len(text) / 1e6, instructions=hlo_instructions(text))
+
+
+def hlo_instructions(text: str) -> int:
+    """Instructions of an optimised HLO module's text, those of fused computations included."""
+    import re
+
+    instruction = re.compile(r"\s*(?:ROOT )?%\S+ = ")
+    return sum(1 for line in text.splitlines() if instruction.match(line))
 
 
 def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
@@ -156,11 +167,11 @@ def deep_tracebacks() -> None:
     jax.clear_caches()
 
 
-HEADER = "| stage | compile s | HLO text MB |\n| --- | ---: | ---: |"
+HEADER = "| stage | compile s | HLO text MB | HLO instructions |\n| --- | ---: | ---: | ---: |"
 
 
 def format_row(r: dict) -> str:
-    return f"| {r['stage']} | {r['compile_s']:.1f} | {r['hlo_mb']:.2f} |"
+    return f"| {r['stage']} | {r['compile_s']:.1f} | {r['hlo_mb']:.2f} | {r['instructions']:,} |"
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
