@@ -1,13 +1,24 @@
-"""The profiling attribution of `python -m hron_jax.bench profile` / `compile --by-source`: XLA ops
-of a trace are mapped to the hron_jax module whose code emitted them."""
+"""The benchmarks: the profiling attribution of `python -m hron_jax.bench profile` / `compile
+--by-source` (XLA ops of a trace are mapped to the hron_jax module whose code emitted them), and the
+prepared GPU-lease script tools/gpu_bench.sh, whose every command the CLIs must accept (a bad
+option there would waste a rare lease)."""
+
+import json
+import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from hron_jax.bench.__main__ import build_parser as bench_parser
 from hron_jax.bench.compile import deep_tracebacks, hlo_by_source, hlo_instructions, instruction_sources
 from hron_jax.bench.profile import op_times
+from hron_jax.cli import build_parser as train_parser
+from hron_jax.cli import config_from_args
+from hron_jax.paths import REPO_ROOT
 from hron_jax.ppo import compute_gae
 
 
@@ -67,3 +78,34 @@ def test_ops_without_our_frames_name_their_library(deep_stacks):
     fn = jax.jit(lambda g, s: opt.update(g, s, params)[0]).lower(params, opt.init(params)).compile()
     sources = {s for _, s, _ in instruction_sources(fn.as_text()).values()}
     assert '(no hron_jax frame) via optax' in sources, sources
+
+
+def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
+    # a python3 first on PATH that records its arguments and exits: every stage "runs" at once
+    bin_dir = tmp_path / 'bin'
+    bin_dir.mkdir()
+    stub = bin_dir / 'python3'
+    stub.write_text(
+        f'#!/bin/sh\nexec {sys.executable} -c "import json, os, sys; '
+        "open(os.environ['CALLS'], 'a').write(json.dumps(sys.argv[1:]) + chr(10))\" \"$@\"\n"
+    )
+    stub.chmod(0o755)
+    calls = tmp_path / 'calls.jsonl'
+    path = f'{bin_dir}:{os.environ["PATH"]}'
+    env = dict(os.environ, PATH=path, CALLS=str(calls), OUT=str(tmp_path / 'out'))
+    script = ['bash', 'tools/gpu_bench.sh', '600']
+    subprocess.run(script, cwd=REPO_ROOT, env=env, check=True, capture_output=True)
+    argvs = [json.loads(line) for line in calls.read_text().splitlines()]
+    runs = [a for a in argvs if a[:1] != ['-c'] and a[:2] != ['-m', 'pip']]  # setup's own calls
+    bench = [a[2:] for a in runs if a[:2] == ['-m', 'hron_jax.bench']]
+    train = [a[1:] for a in runs if a[:1] == ['train.py']]
+    assert len(bench) + len(train) == len(runs), runs
+    assert len(bench) == 11 and len(train) == 2  # the stages of the default list
+    for argv in bench:
+        args = bench_parser().parse_args(argv)  # SystemExit (exit 2) names a bad option
+        # option values are checked where train.py checks them (UsageError names a bad one)
+        options = {k: getattr(args, k, None) or [] for k in ('env_option', 'model_option')}
+        config_from_args(dict(task='exploratory', **options))
+    for argv in train:
+        config = config_from_args(vars(train_parser().parse_args(argv)))
+        assert config.task == 'exploratory' and config.ppo.num_envs == 1024, argv

@@ -15,7 +15,7 @@ SUBCOMMANDS = {
 }
 
 
-def main(argv=None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m hron_jax.bench",
         description=_PACKAGE_DOC,
@@ -31,7 +31,11 @@ def main(argv=None) -> None:
                 formatter_class=argparse.RawDescriptionHelpFormatter,
             )
         )
-    a = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> None:
+    a = build_parser().parse_args(argv)
     if hasattr(SUBCOMMANDS[a.cmd], "before_jax"):  # settings that must precede JAX's backends
         SUBCOMMANDS[a.cmd].before_jax(a)
     from ..cli import tune_malloc
