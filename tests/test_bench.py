@@ -80,8 +80,9 @@ def test_ops_without_our_frames_name_their_library(deep_stacks):
     assert '(no hron_jax frame) via optax' in sources, sources
 
 
-def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
-    # a python3 first on PATH that records its arguments and exits: every stage "runs" at once
+def gpu_script_commands(tmp_path, *script, **env) -> list[list[str]]:
+    """The python3 commands a prepared GPU-lease script runs (less its setup's own), recorded by a
+    stand-in python3 first on PATH that writes its arguments and exits: every step "runs" at once."""
     bin_dir = tmp_path / 'bin'
     bin_dir.mkdir()
     stub = bin_dir / 'python3'
@@ -92,11 +93,14 @@ def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
     stub.chmod(0o755)
     calls = tmp_path / 'calls.jsonl'
     path = f'{bin_dir}:{os.environ["PATH"]}'
-    env = dict(os.environ, PATH=path, CALLS=str(calls), OUT=str(tmp_path / 'out'))
-    script = ['bash', 'tools/gpu_bench.sh', '600']
-    subprocess.run(script, cwd=REPO_ROOT, env=env, check=True, capture_output=True)
+    env = dict(os.environ, PATH=path, CALLS=str(calls), OUT=str(tmp_path / 'out'), **env)
+    subprocess.run(['bash', *script], cwd=REPO_ROOT, env=env, check=True, capture_output=True)
     argvs = [json.loads(line) for line in calls.read_text().splitlines()]
-    runs = [a for a in argvs if a[:1] != ['-c'] and a[:2] != ['-m', 'pip']]  # setup's own calls
+    return [a for a in argvs if a[:1] != ['-c'] and a[:2] != ['-m', 'pip']]
+
+
+def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
+    runs = gpu_script_commands(tmp_path, 'tools/gpu_bench.sh', '600')
     bench = [a[2:] for a in runs if a[:2] == ['-m', 'hron_jax.bench']]
     train = [a[1:] for a in runs if a[:1] == ['train.py']]
     assert len(bench) + len(train) == len(runs), runs

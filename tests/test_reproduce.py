@@ -207,6 +207,20 @@ def test_profiles(R, capsys, tmp_path):
     assert "settings (cpu): preset default (not the paper's settings); camera 32x32;" in out
 
 
+def test_every_command_of_the_gpu_tables_script_parses(R, tmp_path):
+    from test_bench import gpu_script_commands  # the stand-in python3 that records commands
+
+    runs = gpu_script_commands(
+        tmp_path, 'tools/gpu_tables.sh', '2 3', '540', '8192', 'exploratory', RUNS=str(tmp_path / 'runs')
+    )
+    assert [a[0] for a in runs] == ['tools/reproduce.py'] * 2, runs
+    train, report = (R.build_parser().parse_args(a[1:]) for a in runs)  # SystemExit names a bad option
+    assert (train.profile, train.tables, train.cells) == ('gpu', [2, 3], 'exploratory')
+    assert train.total_steps == 8192
+    assert 30 <= train.budget_s < 540 and not train.from_runs
+    assert report.from_runs and report.runs == train.runs == str(tmp_path / 'runs')
+
+
 def test_ordering_disagreements(R):
     paper = {'RGB-D only': 0.417, 'RGB-D + SG': 0.425, 'RGB-D + SG + TD ATTN': 0.900}
     ours = {'RGB-D only': 0.525, 'RGB-D + SG': 0.500, 'RGB-D + SG + TD ATTN': 0.900}

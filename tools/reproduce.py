@@ -1459,7 +1459,7 @@ def write_json_file(path: Path, obj) -> None:
     write_json(path, obj)
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
@@ -1514,6 +1514,11 @@ def main(argv=None) -> int:
         metavar='DIR',
         help="persistent XLA cache (default as train.py; 'none' disables)",
     )
+    return p
+
+
+def main(argv=None) -> int:
+    p = build_parser()
     a = p.parse_args(argv)
     runs, out = Path(a.runs), Path(a.out)
     in_process = a.profile in IN_PROCESS
