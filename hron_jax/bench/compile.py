@@ -23,9 +23,13 @@ per source module (`hlo_by_source`), i.e. which part of the code makes the progr
 from __future__ import annotations
 
 import argparse
+import re
 import time
 
 from .common import stream_table
+
+# An instruction line of an HLO module's text: its name and opcode.
+_INSTRUCTION = re.compile(r"\s*(?:ROOT )?%(\S+) = .*? ([a-z][\w-]*)\(")
 
 
 def bench_compile(config):
@@ -74,10 +78,7 @@ def bench_compile(config):
 
 def hlo_instructions(text: str) -> int:
     """Instructions of an optimised HLO module's text, those of fused computations included."""
-    import re
-
-    instruction = re.compile(r"\s*(?:ROOT )?%\S+ = ")
-    return sum(1 for line in text.splitlines() if instruction.match(line))
+    return sum(1 for line in text.splitlines() if _INSTRUCTION.match(line))
 
 
 def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
@@ -90,8 +91,6 @@ def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
     XLA inserted (copies, layout changes; no metadata). Parameters are left out. Needs stacks
     deep enough to reach our frames: compile with jax_traceback_in_locations_limit raised
     (`deep_tracebacks`)."""
-    import re
-
     sections, current = {}, None
     for line in text.splitlines():
         if line in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
@@ -135,9 +134,8 @@ def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
         return f"(no hron_jax frame) via {lib.rsplit('/', 1)[-1]}"
 
     out = {}
-    instruction = re.compile(r"\s*(?:ROOT )?%(\S+) = .*? ([a-z][\w-]*)\(")
     for line in text.splitlines():
-        m = instruction.match(line)
+        m = _INSTRUCTION.match(line)
         if m and m.group(2) != "parameter":
             frame = re.search(r"stack_frame_id=(\d+)", line)
             op_name = re.search(r'op_name="([^"]*)"', line)
