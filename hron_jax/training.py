@@ -175,10 +175,9 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
         runner, metrics = updates(runner, n)
         # Checked once per chunk on the device (one reduction over the parameters), so a NaN
         # never reaches a checkpoint; non-finite parameters make the next update's loss NaN too.
-        params_ok = functools.reduce(
-            jnp.logical_and,
-            [jnp.isfinite(x).reshape(x.shape[0], -1).all(1) for x in jax.tree.leaves(runner.params)],
-        )
+        # One reduction over all leaves side by side: a reduction per leaf is a kernel per leaf.
+        flat = jnp.concatenate([x.reshape(x.shape[0], -1) for x in jax.tree.leaves(runner.params)], 1)
+        params_ok = jnp.isfinite(flat).all(1)
         bad = ~jnp.isfinite(metrics['loss'])
         metrics['nonfinite'] = bad.at[:, -1].set(bad[:, -1] | ~params_ok).astype(jnp.float32)
         return runner, metrics
