@@ -202,6 +202,9 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
     lr = optax.linear_schedule(config.lr, 0.0, num_opt_steps) if config.anneal_lr else config.lr
     adam = optax.adam(lr, eps=config.adam_eps)
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), adam) if config.max_grad_norm else adam
+    # On one flat vector: the same per-element Adam, but one set of kernels instead of one per
+    # parameter leaf (64 for the main model; 2,734 -> 2,425 fusions in the training chunk).
+    tx = optax.flatten(tx)
     v_reset = jax.vmap(env.reset)
     v_step = jax.vmap(env.step)
     v_final_obs = jax.vmap(env.final_obs)
