@@ -8,10 +8,18 @@ MuJoCo model, and steps it with MJX. The API is functional (Brax / MuJoCo Playgr
 functions of an `mjx.Data`, so they jit and vmap:
 
     sim = Simulator.from_file("scenes/house.xml")            # or from_xml / from_spec
-    d = sim.init(pose, mocap_pos, mocap_quat)                  # pose f32[3] = (x, y, yaw)
-    d = sim.step(d, action)                                    # action i32[] in 0..4, 0.1 s of sim
-    xy_yaw = sim.agent_pose(d)                                 # f32[3], yaw wrapped to [-pi, pi)
+    s = sim.init(pose, mocap_pos, mocap_quat)                  # SimState; pose f32[3] = (x, y, yaw)
+    s = sim.step(s, action)                                    # action i32[] in 0..4, 0.1 s of sim
+    xy_yaw = sim.agent_pose(s)                                 # f32[3], yaw wrapped to [-pi, pi)
+    d = sim.data(s)                                            # the full mjx.Data, when needed
     batched: jax.vmap(sim.init)(poses[B,3], mpos[B,nmocap,3], mquat[B,nmocap,4]); jax.vmap(sim.step)
+
+The state (`SimState`) is what of an mjx.Data persists from one env step to the next: time, qpos,
+qvel, the solver's warm start, the mocap poses, and the geom poses the sensors read (8 of MJX's 84
+fields, ~17 of ~70 KB per env on house.xml). Every other field is an output of the next step's
+forward pass, or an input this project never sets (applied forces, activations), so `step` starts
+from the model's blank mjx.Data with these fields set and gives bitwise the trajectory of carrying
+the whole mjx.Data (tested). Envs carry it through their loops and checkpoints.
 
 Actions (the paper's discrete navigation actions, executed physically): FORWARD 0 (+0.2 m along the
 heading), BACKWARD 1 (-0.2 m), TURN_LEFT 2 (+30 deg yaw), TURN_RIGHT 3 (-30 deg), STOP 4 (zero
@@ -68,15 +76,14 @@ resting 2.8-3.1 cm from the wall surface. Finally a brake zeroes the agent's qve
 the last substep (in free space it is zero already; it matters in contact), so no velocity ever
 carries into the next step: each action is a self-contained motion primitive, as in the paper.
 
-Physics implementation (`SimConfig.physics`): 'jax' steps with MJX's JAX implementation (the mjx.Data
-is carried as is); 'warp' with MJX-Warp (`hron_jax.sim_warp`: vmapped envs are stepped in one call
-and only time, qpos, qvel and body / geom poses come back into the carried mjx.Data, whose contact
-fields then stay those of `init`); 'auto' is warp on an NVIDIA GPU with warp-lang installed, else
-jax. Both agree with native MuJoCo on the physics model to well under a millimetre
-(tests/test_sim_native.py).
+Physics implementation (`SimConfig.physics`): 'jax' steps with MJX's JAX implementation; 'warp'
+with MJX-Warp (`hron_jax.sim_warp`: vmapped envs are stepped in one call and only time, qpos, qvel
+and body / geom poses come back, so the state's solver warm start stays that of `init`); 'auto'
+is warp on an NVIDIA GPU with warp-lang installed, else jax. Both agree with native MuJoCo on the
+physics model to well under a millimetre (tests/test_sim_native.py).
 
 Shapes: pose f32[3]; mocap_pos f32[nmocap, 3]; mocap_quat f32[nmocap, 4] (w, x, y, z); action i32[].
-After `step`, `d.qpos`/`d.qvel` are final; `d.geom_xpos`/`geom_xmat` are those of the last substep's
+After `step`, `s.qpos`/`s.qvel` are final; `s.geom_xpos`/`geom_xmat` are those of the last substep's
 forward pass (static and mocap geoms are exact; only the agent's own geoms lag one substep, and the
 sensors exclude them). Mocap poses are constant within an episode, so sensors may use d.geom_xpos.
 """
@@ -91,6 +98,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from flax import struct
 from mujoco import mjx
 
 FORWARD, BACKWARD, TURN_LEFT, TURN_RIGHT, STOP = 0, 1, 2, 3, 4
@@ -127,6 +135,24 @@ class SimConfig:
     physics: str = "auto"  # 'jax' | 'warp' | 'auto' (warp on NVIDIA GPUs when installed, else jax)
     warp_contacts_per_env: int = 8  # MJX-Warp's contact pool: this many per env, shared by all envs
     agent_rgba: tuple = (0.2, 0.4, 0.9, 1.0)
+
+
+@struct.dataclass
+class SimState:
+    """The fields of an mjx.Data that persist between env steps (module docstring), same names."""
+
+    time: jax.Array  # f32[]
+    qpos: jax.Array  # f32[nq]
+    qvel: jax.Array  # f32[nv]
+    qacc_warmstart: jax.Array  # f32[nv]
+    mocap_pos: jax.Array  # f32[nmocap, 3]
+    mocap_quat: jax.Array  # f32[nmocap, 4]
+    geom_xpos: jax.Array  # f32[ngeom, 3]
+    geom_xmat: jax.Array  # f32[ngeom, 3, 3]
+
+    @classmethod
+    def of(cls, d) -> SimState:
+        return cls(**{f.name: getattr(d, f.name) for f in dataclasses.fields(cls)})
 
 
 PHYSICS_IMPLS = ("auto", "jax", "warp")
@@ -444,11 +470,18 @@ class Simulator:
     # ------------------------------------------------------------------ functional API
     def init(
         self, pose: jax.Array, mocap_pos: jax.Array | None = None, mocap_quat: jax.Array | None = None
-    ) -> mjx.Data:
-        """Fresh data with the agent at pose (x, y, yaw) at rest and the given mocap poses.
+    ) -> SimState:
+        """The agent at pose (x, y, yaw) at rest, with the given mocap poses.
 
         Runs kinematics so geom_xpos / geom_xmat (mocap objects included) are valid for sensing.
         """
+        return SimState.of(self._init_data(pose, mocap_pos, mocap_quat))
+
+    def data(self, state: SimState) -> mjx.Data:
+        """The full mjx.Data `state` stands for: the blank data with the persistent fields set."""
+        return self._template.replace(**{f.name: getattr(state, f.name) for f in dataclasses.fields(state)})
+
+    def _init_data(self, pose, mocap_pos, mocap_quat) -> mjx.Data:
         d = self._template
         pose = jnp.asarray(pose, d.qpos.dtype)
         qpos = d.qpos.at[self.qpos_adr].set(pose)
@@ -477,8 +510,12 @@ class Simulator:
         )
         return table[jnp.clip(action, 0, NUM_ACTIONS - 1)]
 
-    def step(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
+    def step(self, state: SimState, action: jax.Array) -> SimState:
         """Execute one discrete action: `substeps` MJX steps (env_dt seconds), then brake."""
+        return SimState.of(self.step_data(self.data(state), action))
+
+    def step_data(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
+        """`step` on a full mjx.Data (what `step` runs; the reference its state is tested against)."""
         pose = data.qpos[self.qpos_adr]
         delta = self.action_delta(pose, action).astype(data.ctrl.dtype)
         ctrl = self._ctrl_profile.astype(data.ctrl.dtype)[:, None] * delta  # (substeps, nu)
@@ -493,13 +530,13 @@ class Simulator:
         # Brake: whatever contacts did, nothing carries into the next action.
         return data.replace(qvel=data.qvel.at[self.dof_adr].set(0.0), ctrl=jnp.zeros_like(data.ctrl))
 
-    def agent_pose(self, data: mjx.Data) -> jax.Array:
+    def agent_pose(self, data: SimState | mjx.Data) -> jax.Array:
         """(x, y, yaw) with yaw wrapped to [-pi, pi)."""
         p = data.qpos[self.qpos_adr]
         yaw = jnp.mod(p[2] + jnp.pi, 2 * jnp.pi) - jnp.pi
         return jnp.stack([p[0], p[1], yaw])
 
-    def agent_velocity(self, data: mjx.Data) -> jax.Array:
+    def agent_velocity(self, data: SimState | mjx.Data) -> jax.Array:
         """(vx, vy, wz): zero after every `step` (the brake)."""
         return data.qvel[self.dof_adr]
 

@@ -197,6 +197,28 @@ def test_vmap_equals_single_runs(sim, fns):
         np.testing.assert_allclose(np.asarray(db.qvel[i]), np.asarray(d.qvel), atol=1e-6)
 
 
+def test_state_carries_what_the_next_step_reads():
+    """SimState keeps 8 of mjx.Data's fields; stepping it gives bitwise the trajectory of carrying
+    the whole mjx.Data (step_data), through free motion, turns and steps blocked by the wall: none
+    of the dropped fields is read by the next step."""
+    sim = S.Simulator.from_xml(SCENE, S.SimConfig(physics="jax"))
+    turns = [S.BACKWARD, S.TURN_LEFT, S.FORWARD, S.TURN_RIGHT, S.FORWARD, S.FORWARD]
+    actions = jnp.asarray([S.FORWARD] * 4 + turns)
+
+    @jax.jit
+    def both(pose):
+        start = sim.init(pose)
+        state = jax.lax.scan(lambda s, a: (sim.step(s, a), None), start, actions)[0]
+        full = jax.lax.scan(lambda d, a: (sim.step_data(d, a), None), sim.data(start), actions)[0]
+        return state, full
+
+    state, full = both(jnp.asarray([WALL_X - R - 0.45, 0.3, 0.0], jnp.float32))
+    assert float(state.qpos[0]) > WALL_X - R - 0.05  # the walk ended against the wall
+    assert np.abs(np.asarray(full.qacc_warmstart)).max() > 0  # the solver state is not blank
+    for f, v in vars(state).items():
+        np.testing.assert_array_equal(np.asarray(v), np.asarray(getattr(full, f)), err_msg=f)
+
+
 def test_init_places_mocap_objects(sim, fns):
     pos = np.array([[1.0, 2.0, 0.8]], np.float32)
     quat = np.array([[1.0, 0.0, 0.0, 0.0]], np.float32)

@@ -108,7 +108,7 @@ class NavConfig:
 
 @struct.dataclass
 class NavInner:
-    data: Any  # mjx.Data of the simulator
+    data: Any  # sim.SimState: what of the mjx.Data persists between steps
     placement: Placement  # pool objects of this episode
     goal: jax.Array  # i32[4] vocabulary indices (room -1 in the directed task)
     target: jax.Array  # i32 pool entry
