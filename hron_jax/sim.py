@@ -2,24 +2,27 @@
 
 Role
 ----
-Compiles an annotated scene (docs/scene_format.md) together with the navigating agent into a single
-MuJoCo model, and steps it with MJX. The API is functional (Brax / MuJoCo Playground style): a
-`Simulator` holds only static things (models, index tables, config) and its methods are pure
-functions of an `mjx.Data`, so they jit and vmap:
+Compiles an annotated scene (docs/scene_format.md) together with the navigating agent into two
+MuJoCo models, and steps one of them with MJX: the scene model (`mj_model`: the scene as it is plus
+the agent; the camera, placement and geodesic map read it) and the physics model (`physics_model`:
+the agent and the geoms that block it, nothing else; `_physics_model`). The API is functional
+(Brax / MuJoCo Playground style): a `Simulator` holds only static things (models, index tables,
+config) and its methods are pure functions of a state pytree, so they jit and vmap:
 
     sim = Simulator.from_file("scenes/house.xml")            # or from_xml / from_spec
     s = sim.init(pose, mocap_pos, mocap_quat)                  # SimState; pose f32[3] = (x, y, yaw)
     s = sim.step(s, action)                                    # action i32[] in 0..4, 0.1 s of sim
     xy_yaw = sim.agent_pose(s)                                 # f32[3], yaw wrapped to [-pi, pi)
-    d = sim.data(s)                                            # the full mjx.Data, when needed
+    d = sim.data(s)                                            # the physics model's mjx.Data
     batched: jax.vmap(sim.init)(poses[B,3], mpos[B,nmocap,3], mquat[B,nmocap,4]); jax.vmap(sim.step)
 
-The state (`SimState`) is what of an mjx.Data persists from one env step to the next: time, qpos,
-qvel, the solver's warm start, the mocap poses, and the geom poses the sensors read (8 of MJX's 84
-fields, ~17 of ~70 KB per env on house.xml). Every other field is an output of the next step's
-forward pass, or an input this project never sets (applied forces, activations), so `step` starts
-from the model's blank mjx.Data with these fields set and gives bitwise the trajectory of carrying
-the whole mjx.Data (tested). Envs carry it through their loops and checkpoints.
+The state (`SimState`) is what persists from one env step to the next: of the physics model's
+mjx.Data the time, qpos, qvel and the solver's warm start (every other field is an output of the
+next step's forward pass, or an input this project never sets, so `step` starts from the model's
+blank mjx.Data with these set and gives bitwise the trajectory of carrying the whole mjx.Data:
+tested), and the scene model's geom poses, which the sensors read (`init` runs the scene's
+kinematics once, with the episode's mocap object poses; after that only the agent moves, and
+`step` moves its geoms with it). Envs carry it through their loops and checkpoints.
 
 Actions (the paper's discrete navigation actions, executed physically): FORWARD 0 (+0.2 m along the
 heading), BACKWARD 1 (-0.2 m), TURN_LEFT 2 (+30 deg yaw), TURN_RIGHT 3 (-30 deg), STOP 4 (zero
@@ -32,16 +35,15 @@ Body `agent` with slide joints `agent:x`, `agent:y` (world axes, they come first
 `agent:yaw`, so qpos[agent] = (x, y, yaw). Its body is a vertical capsule `agent:capsule` of radius
 0.2 m from `bottom_clearance` (0.05 m, so floor seams and door thresholds never block it) to 1.2 m,
 which is what it looks like and never collides. What collides is `agent:collider`, a sphere of the
-body's radius plus `contact_skin` at mid-height, against a physics model (`physics_model`) in which
-every blocker box grows about its centre until it spans the agent's height (`_physics_model`): a
+body's radius plus `contact_skin` at mid-height, against the physics model's blockers, every
+blocker box grown about its centre until it spans the agent's height (`_physics_model`): a
 cylinder against prisms, i.e. planar collision for a planar motion, and a pair MJX's sphere-box
 collider gets exactly right (its capsule-box collider drops contacts near box edges; see
-`_physics_model`). The collider is the only geom with contype=1; the geoms that should block it
-(walls, furniture: every geom that is not a room floor, not a mocap object, and reaches into the
-agent's height range) get conaffinity=1, everything else contype=conaffinity=0. `mj_model` is the
-scene as it is (the camera, annotations and the geodesic map read it), `physics_model` the same
-model with grown blockers (MJX steps it; native references must step it too); geom centres agree.
-Static-static pairs never exist, so the candidate pairs are exactly agent x blockers. MJX evaluates
+`_physics_model`). The blockers are every scene geom that is not a room floor, not a mocap object,
+and reaches into the agent's height range (walls, furniture); in the physics model they are
+geoms of the world body at their world poses (conaffinity=1), and the collider is the only geom
+with contype=1. Native references must step `physics_model` too. Static-static pairs never exist,
+so the candidate pairs are exactly agent x blockers. MJX evaluates
 every candidate pair every substep (its CPU cost scales with pairs), so the model carries the MJX
 numeric `max_geom_pairs` = K: per substep MJX keeps the K pairs of smallest bounding-sphere distance
 (lax.top_k). K is chosen at build time (`_auto_max_geom_pairs`) so that, for agent positions on a
@@ -77,15 +79,14 @@ the last substep (in free space it is zero already; it matters in contact), so n
 carries into the next step: each action is a self-contained motion primitive, as in the paper.
 
 Physics implementation (`SimConfig.physics`): 'jax' steps with MJX's JAX implementation; 'warp'
-with MJX-Warp (`hron_jax.sim_warp`: vmapped envs are stepped in one call and only time, qpos, qvel
-and body / geom poses come back, so the state's solver warm start stays that of `init`); 'auto'
+with MJX-Warp (`hron_jax.sim_warp`: vmapped envs are stepped in one call and only time, qpos and
+qvel come back, so the state's solver warm start stays that of `init`); 'auto'
 is warp on an NVIDIA GPU with warp-lang installed, else jax. Both agree with native MuJoCo on the
 physics model to well under a millimetre (tests/test_sim_native.py).
 
 Shapes: pose f32[3]; mocap_pos f32[nmocap, 3]; mocap_quat f32[nmocap, 4] (w, x, y, z); action i32[].
-After `step`, `s.qpos`/`s.qvel` are final; `s.geom_xpos`/`geom_xmat` are those of the last substep's
-forward pass (static and mocap geoms are exact; only the agent's own geoms lag one substep, and the
-sensors exclude them). Mocap poses are constant within an episode, so sensors may use d.geom_xpos.
+After `step`, `s.qpos`/`s.qvel` are final and `s.geom_xpos`/`geom_xmat` (f32[ngeom, 3], f32[ngeom, 3, 3]
+of mj_model's geoms) are exact for the final pose. Mocap poses are constant within an episode.
 """
 
 from __future__ import annotations
@@ -139,20 +140,18 @@ class SimConfig:
 
 @struct.dataclass
 class SimState:
-    """The fields of an mjx.Data that persist between env steps (module docstring), same names."""
+    """What persists between env steps (module docstring): the physics model's time, qpos, qvel
+    and solver warm start (mjx.Data's names), and the scene model's geom poses for the sensors."""
 
     time: jax.Array  # f32[]
-    qpos: jax.Array  # f32[nq]
-    qvel: jax.Array  # f32[nv]
-    qacc_warmstart: jax.Array  # f32[nv]
-    mocap_pos: jax.Array  # f32[nmocap, 3]
-    mocap_quat: jax.Array  # f32[nmocap, 4]
-    geom_xpos: jax.Array  # f32[ngeom, 3]
+    qpos: jax.Array  # f32[3] the agent's (x, y, yaw) joints, the same in both models
+    qvel: jax.Array  # f32[3]
+    qacc_warmstart: jax.Array  # f32[3]
+    geom_xpos: jax.Array  # f32[ngeom, 3] of mj_model's geoms (objects where init placed them)
     geom_xmat: jax.Array  # f32[ngeom, 3, 3]
 
-    @classmethod
-    def of(cls, d) -> SimState:
-        return cls(**{f.name: getattr(d, f.name) for f in dataclasses.fields(cls)})
+
+PHYSICS_FIELDS = ("time", "qpos", "qvel", "qacc_warmstart")  # SimState's fields of the physics model's Data
 
 
 PHYSICS_IMPLS = ("auto", "jax", "warp")
@@ -280,56 +279,65 @@ def _geom_world_aabb(m: mujoco.MjModel, d: mujoco.MjData) -> tuple[np.ndarray, n
     return d.geom_xpos.copy(), half
 
 
-def _physics_model(spec: mujoco.MjSpec, m: mujoco.MjModel, d: mujoco.MjData, blockers, cfg: SimConfig):
-    """`spec` recompiled with every upright blocker box (and vertical capsule) grown about its centre
-    in z until it spans the agent's height (+ 5 cm each way). Returns (model, indices of the grown
-    geoms); centres, orientations and every other size are unchanged (checked).
+def _physics_model(m: mujoco.MjModel, d: mujoco.MjData, blockers, cfg: SimConfig):
+    """The model MJX steps: the agent and the blockers only. Returns (model, indices of the grown
+    blockers in `m`). The blockers become geoms of the world body at their world poses (physics
+    geom i is `m`'s geom blockers[i]), then `_add_agent` adds the agent's body, geoms and
+    actuators; nothing else of the scene is in it (no room, no mocap object, no static body).
 
-    Why: with every blocker a prism over the agent's height, a sphere at mid-height (the agent's
-    collider) meets each one exactly where a cylinder of the same radius would: collision is planar,
-    as the agent's motion is. MJX's sphere-box collider is exact for that; its capsule-box
-    collider is not: near a vertical box edge it drops the contact when the edge direction is within
-    8 deg of the nearest face's normal (it then prefers a face contact that the face's side planes
-    clip away), and at boxes whose top lies within the capsule's height it can keep a horizontal
-    edge that fails its Voronoi test: the agent walked 0.2 m into a bed corner where native MuJoCo
-    stops it (tests/test_sim_native.py). Only contacts that a capsule would make with its rounded
-    ends (box tops below 0.25 m, bottoms above 1.0 m) move out, by < 2.2 cm. Geom centres are
-    unchanged, so the carried geom poses, which the camera reads, are the true ones.
+    Why only these: the agent is the one body that moves and the blockers the only geoms it
+    touches, and MJX's step costs what the model holds, not what moves: kinematics, velocities and
+    inertias of every body, every substep. With the scene's 121 bodies (house.xml) that was half of
+    an env step's physics on the CPU, and on a GPU it made XLA emit kernels over all bodies at once
+    whose LLVM compile alone took up to 7.6 s each (README, Physics). The agent's motion is the
+    same: the same shapes at the same world poses, and the agent's contact parameters win every
+    pair (its geoms' priority).
+
+    With the sphere collider (default), every upright blocker box (and vertical capsule) also grows
+    about its centre in z until it spans the agent's height (+ 5 cm each way). With every blocker a
+    prism over the agent's height, a sphere at mid-height (the agent's collider) meets each one
+    exactly where a cylinder of the same radius would: collision is planar, as the agent's motion
+    is. MJX's sphere-box collider is exact for that; its capsule-box collider is not: near a
+    vertical box edge it drops the contact when the edge direction is within 8 deg of the nearest
+    face's normal (it then prefers a face contact that the face's side planes clip away), and at
+    boxes whose top lies within the capsule's height it can keep a horizontal edge that fails its
+    Voronoi test: the agent walked 0.2 m into a bed corner where native MuJoCo stops it
+    (tests/test_sim_native.py). Only contacts that a capsule would make with its rounded ends (box
+    tops below 0.25 m, bottoms above 1.0 m) move out, by < 2.2 cm. Centres are unchanged.
     """
     zlo = cfg.bottom_clearance - cfg.contact_skin  # the agent's lowest point
     zhi = cfg.height + cfg.contact_skin  # and its highest
-    box, capsule = int(mujoco.mjtGeom.mjGEOM_BOX), int(mujoco.mjtGeom.mjGEOM_CAPSULE)
-    if len(spec.geoms) != m.ngeom:
-        raise RuntimeError("the spec's geoms do not map one to one onto the compiled model's")
+    G = mujoco.mjtGeom
+    box, capsule, sphere = int(G.mjGEOM_BOX), int(G.mjGEOM_CAPSULE), int(G.mjGEOM_SPHERE)
+    spec = mujoco.MjSpec()
     grown = []
     for g in blockers:
-        if m.geom_type[g] not in (box, capsule) or not np.isnan(spec.geoms[g].fromto[0]):
-            continue  # spheres, and geoms given by fromto, collide as they are
+        kind = int(m.geom_type[g])  # ints throughout: numpy ints and MuJoCo's enums do not compare
+        if kind not in (box, capsule, sphere):
+            raise ValueError(
+                f"geom {m.geom(g).name or g} blocks the agent but is a {G(kind).name}; blockers "
+                "must be boxes, capsules or spheres (docs/scene_format.md)"
+            )
         rot = d.geom_xmat[g].reshape(3, 3)
-        is_capsule = m.geom_type[g] == capsule
-        axis = 2 if is_capsule else int(np.abs(rot[2]).argmax())  # the local axis closest to z
-        if abs(rot[2, axis]) < 1.0 - 1e-6:
-            continue  # tilted: collides as it is
-        i = 1 if is_capsule else axis  # the size entry of that half extent (a capsule's segment)
-        cz = d.geom_xpos[g, 2]
-        if cz - m.geom_size[g, i] > zlo or cz + m.geom_size[g, i] < zhi:
-            size = np.array(spec.geoms[g].size)
-            grown.append((g, size.copy()))
-            size[i] = max(cz - zlo, zhi - cz) + 0.05
-            spec.geoms[g].size = size
-    mp = spec.compile()
-    for g, size in grown:  # the caller's spec keeps the true geometry
-        spec.geoms[g].size = size
-    grown = np.asarray([g for g, _ in grown], np.int64)
-    same = np.ones(m.ngeom, bool)
-    same[grown] = False
-    if not (
-        np.array_equal(mp.geom_pos, m.geom_pos)
-        and np.array_equal(mp.geom_quat, m.geom_quat)
-        and np.array_equal(mp.geom_size[same], m.geom_size[same])
-    ):
-        raise RuntimeError("growing blockers to the agent's height moved or resized other geoms")
-    return mp, grown
+        size = m.geom_size[g].copy()
+        if cfg.collider == "sphere" and kind != sphere:
+            is_capsule = kind == capsule
+            axis = 2 if is_capsule else int(np.abs(rot[2]).argmax())  # the local axis closest to z
+            i = 1 if is_capsule else axis  # the size entry of that half extent (a capsule's segment)
+            cz = d.geom_xpos[g, 2]
+            # upright (tilted ones collide as they are) and not already spanning the agent's height
+            if abs(rot[2, axis]) >= 1.0 - 1e-6 and (cz - size[i] > zlo or cz + size[i] < zhi):
+                size[i] = max(cz - zlo, zhi - cz) + 0.05
+                grown.append(g)
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, d.geom_xmat[g])
+        geom = spec.worldbody.add_geom(type=G(kind), size=size, pos=d.geom_xpos[g], quat=quat)
+        geom.condim, geom.priority = int(m.geom_condim[g]), int(m.geom_priority[g])
+        geom.solref, geom.solimp, geom.solmix = m.geom_solref[g], m.geom_solimp[g], float(m.geom_solmix[g])
+        geom.margin, geom.gap = float(m.geom_margin[g]), float(m.geom_gap[g])
+        geom.friction = m.geom_friction[g]
+    _add_agent(spec, cfg)
+    return spec.compile(), np.asarray(grown, np.int64)
 
 
 def _auto_max_geom_pairs(m, d, agent_geom, blockers, cfg: SimConfig, grid: float = 0.05) -> int:
@@ -374,11 +382,16 @@ def _auto_max_geom_pairs(m, d, agent_geom, blockers, cfg: SimConfig, grid: float
 class Simulator:
     """Static container for one compiled scene + agent; all methods are pure and jittable.
 
-    Attributes: `mj_model` (mujoco.MjModel incl. agent), `mjx_model`, `config`, `scene_ngeom` (the
-    scene file's geoms are geoms [0, scene_ngeom), the agent's come after), `agent_geoms` (np int),
-    `agent_body`, `blockers` (np int: geoms that collide with the agent), `physics_model` (mj_model
-    with blockers grown to the agent's height, what MJX steps), `grown_blockers`, `max_geom_pairs`,
-    `nmocap`, `default_mocap_pos` / `default_mocap_quat` (the file's mocap poses).
+    Attributes of the scene model: `mj_model` (mujoco.MjModel, the scene file + the agent: what the
+    camera, placement and geodesic map read), `scene_ngeom` (the scene file's geoms are geoms
+    [0, scene_ngeom), the agent's come after), `agent_geoms` (np int), `agent_body`, `blockers` (np
+    int: geoms that block the agent), `grown_blockers` (those the physics model grows), `nmocap`,
+    `default_mocap_pos` / `default_mocap_quat` (the file's mocap poses).
+    Of the physics model: `physics_model` (the agent and the blockers only, `_physics_model`; what
+    MJX steps, and what native references must step), `mjx_model` (it on the device),
+    `physics_blockers` (its geoms of `blockers`, in that order), `collider_geom` (its agent geom
+    that collides), `max_geom_pairs`. Both models have the agent's three joints as their only
+    degrees of freedom, so qpos / qvel mean the same in both.
     """
 
     def __init__(self, spec: mujoco.MjSpec, config: SimConfig = SimConfig()):
@@ -388,6 +401,11 @@ class Simulator:
         check_collider(cfg.collider)
         scene_model = spec.compile()
         self.scene_ngeom = scene_model.ngeom
+        if scene_model.nq or scene_model.nv:
+            raise ValueError(
+                f"the scene has {scene_model.nq} joint coordinates; scene bodies must be static or "
+                "mocap (docs/scene_format.md): the agent is the only body that moves"
+            )
         _add_agent(spec, cfg)
         m = spec.compile()
         if not np.array_equal(m.geom_type[: self.scene_ngeom], scene_model.geom_type):
@@ -401,12 +419,11 @@ class Simulator:
         self.config = cfg
         self.agent_body = m.body(AGENT_BODY).id
         self.agent_geoms = np.nonzero(m.geom_bodyid == self.agent_body)[0]
-        agent_geom = m.geom(AGENT_GEOM if cfg.collider == "capsule" else AGENT_COLLIDER).id
-        self.collider_geom = agent_geom
         self.qpos_adr = np.array([m.jnt_qposadr[m.joint(j).id] for j in AGENT_JOINTS])
         self.dof_adr = np.array([m.jnt_dofadr[m.joint(j).id] for j in AGENT_JOINTS])
 
-        # --- contact filter: agent capsule (contype 1) x blockers (conaffinity 1), nothing else ---
+        # --- what blocks the agent: every scene geom that is no floor, no mocap object, and reaches
+        # into its height range ---
         body_names = [m.body(b).name for b in range(m.nbody)]
         root = m.body_rootid
         is_floor = np.array([body_names[root[m.geom_bodyid[g]]].startswith("room:") for g in range(m.ngeom)])
@@ -416,23 +433,26 @@ class Simulator:
             c[:, 2] - h[:, 2] < cfg.height + cfg.contact_skin
         )
         is_scene = np.arange(m.ngeom) < self.scene_ngeom
-        block = is_scene & ~is_floor & ~is_mocap & reaches
-        self.blockers = np.nonzero(block)[0]
-        mp, self.grown_blockers = m, np.zeros(0, np.int64)
-        if cfg.collider == "sphere":
-            mp, self.grown_blockers = _physics_model(spec, m, d, self.blockers, cfg)
-        for model in (m, mp):
-            model.geom_contype[:] = 0
-            model.geom_conaffinity[:] = np.where(block, 1, 0)
-            model.geom_contype[agent_geom] = 1
-            model.geom_conaffinity[agent_geom] = 0
+        self.blockers = np.nonzero(is_scene & ~is_floor & ~is_mocap & reaches)[0]
 
+        # --- the physics model; both models get the contact filter (the geodesic map reads the
+        # scene model's): agent collider (contype 1) x blockers (conaffinity 1), nothing else ---
+        mp, self.grown_blockers = _physics_model(m, d, self.blockers, cfg)
+        self.physics_blockers = np.arange(len(self.blockers))
+        collider = AGENT_GEOM if cfg.collider == "capsule" else AGENT_COLLIDER
+        self.collider_geom = mp.geom(collider).id
+        for model, blockers in ((m, self.blockers), (mp, self.physics_blockers)):
+            model.geom_contype[:] = 0
+            model.geom_conaffinity[:] = 0
+            model.geom_conaffinity[blockers] = 1
+            model.geom_contype[model.geom(collider).id] = 1
+        dp = mujoco.MjData(mp)
+        mujoco.mj_kinematics(mp, dp)
         k = cfg.max_geom_pairs
-        if k is None:  # d's geom poses are mp's too (same centres); the sizes and rbounds are mp's
-            k = _auto_max_geom_pairs(mp, d, agent_geom, self.blockers, cfg)
+        if k is None:
+            k = _auto_max_geom_pairs(mp, dp, self.collider_geom, self.physics_blockers, cfg)
         k = int(max(1, min(k, max(len(self.blockers), 1))))
-        for model in (m, mp):
-            model.numeric_data[model.numeric("max_geom_pairs").adr[0]] = float(k)
+        mp.numeric_data[mp.numeric("max_geom_pairs").adr[0]] = float(k)
         self.max_geom_pairs = k
 
         self.mj_model = m
@@ -456,6 +476,12 @@ class Simulator:
             else np.zeros((0, 4))
         )
         self._template = mjx.put_data(mp, mujoco.MjData(mp))
+        self._scene_model = mjx.put_model(m)
+        self._scene_template = mjx.put_data(m, mujoco.MjData(m))
+        # The agent's geoms in its body frame (the body sits at the world origin at qpos 0), so the
+        # scene's geom poses follow the agent after every step without the scene's kinematics.
+        self._agent_geom_pos = np.asarray(d.geom_xpos[self.agent_geoms], np.float32)
+        self._agent_geom_mat = np.asarray(d.geom_xmat[self.agent_geoms], np.float32).reshape(-1, 3, 3)
         self._ctrl_profile = jnp.asarray(control_profile(cfg), jnp.float32)
 
     # ------------------------------------------------------------------ constructors
@@ -471,27 +497,32 @@ class Simulator:
     def init(
         self, pose: jax.Array, mocap_pos: jax.Array | None = None, mocap_quat: jax.Array | None = None
     ) -> SimState:
-        """The agent at pose (x, y, yaw) at rest, with the given mocap poses.
+        """The agent at pose (x, y, yaw) at rest, with the given mocap poses (default: the file's).
 
-        Runs kinematics so geom_xpos / geom_xmat (mocap objects included) are valid for sensing.
-        """
-        return SimState.of(self._init_data(pose, mocap_pos, mocap_quat))
-
-    def data(self, state: SimState) -> mjx.Data:
-        """The full mjx.Data `state` stands for: the blank data with the persistent fields set."""
-        return self._template.replace(**{f.name: getattr(state, f.name) for f in dataclasses.fields(state)})
-
-    def _init_data(self, pose, mocap_pos, mocap_quat) -> mjx.Data:
-        d = self._template
-        pose = jnp.asarray(pose, d.qpos.dtype)
-        qpos = d.qpos.at[self.qpos_adr].set(pose)
+        Runs the scene's kinematics once, for the geom poses the sensors read (mocap objects
+        included); the physics model starts from its blank data at that pose."""
+        d = self._scene_template
+        qpos = d.qpos.at[self.qpos_adr].set(jnp.asarray(pose, d.qpos.dtype))
         repl = dict(qpos=qpos)
         if mocap_pos is not None:
             repl["mocap_pos"] = jnp.asarray(mocap_pos, d.mocap_pos.dtype).reshape(d.mocap_pos.shape)
         if mocap_quat is not None:
             repl["mocap_quat"] = jnp.asarray(mocap_quat, d.mocap_quat.dtype).reshape(d.mocap_quat.shape)
-        d = d.replace(**repl)
-        return mjx.kinematics(self.mjx_model, d)
+        scene = mjx.kinematics(self._scene_model, d.replace(**repl))
+        p = self._template
+        return SimState(
+            time=p.time,
+            qpos=qpos,
+            qvel=p.qvel,
+            qacc_warmstart=p.qacc_warmstart,
+            geom_xpos=scene.geom_xpos,
+            geom_xmat=scene.geom_xmat,
+        )
+
+    def data(self, state: SimState) -> mjx.Data:
+        """The physics model's full mjx.Data that `state` stands for: its blank data with the
+        persistent fields set."""
+        return self._template.replace(**{f: getattr(state, f) for f in PHYSICS_FIELDS})
 
     def action_delta(self, pose: jax.Array, action: jax.Array) -> jax.Array:
         """World-frame (dx, dy, dyaw) that `action` asks for at `pose` (x, y, yaw)."""
@@ -511,11 +542,21 @@ class Simulator:
         return table[jnp.clip(action, 0, NUM_ACTIONS - 1)]
 
     def step(self, state: SimState, action: jax.Array) -> SimState:
-        """Execute one discrete action: `substeps` MJX steps (env_dt seconds), then brake."""
-        return SimState.of(self.step_data(self.data(state), action))
+        """Execute one discrete action: `substeps` MJX steps (env_dt seconds), then brake; the
+        agent's geoms in the scene's geom poses move with it."""
+        d = self.step_data(self.data(state), action)
+        xpos, xmat = self.agent_geom_poses(d.qpos)
+        return SimState(
+            **{f: getattr(d, f) for f in PHYSICS_FIELDS},
+            geom_xpos=state.geom_xpos.at[self.agent_geoms].set(xpos.astype(state.geom_xpos.dtype)),
+            geom_xmat=state.geom_xmat.at[self.agent_geoms].set(
+                xmat.reshape(state.geom_xmat[self.agent_geoms].shape).astype(state.geom_xmat.dtype)
+            ),
+        )
 
     def step_data(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
-        """`step` on a full mjx.Data (what `step` runs; the reference its state is tested against)."""
+        """`step` on the physics model's full mjx.Data (what `step` runs; the reference its state is
+        tested against)."""
         pose = data.qpos[self.qpos_adr]
         delta = self.action_delta(pose, action).astype(data.ctrl.dtype)
         ctrl = self._ctrl_profile.astype(data.ctrl.dtype)[:, None] * delta  # (substeps, nu)
@@ -524,11 +565,21 @@ class Simulator:
                 lambda d, c: (mjx.step(self.mjx_model, d.replace(ctrl=c)), None), data, ctrl
             )
         else:  # a batch of one world; vmapped callers step all worlds in one call (sim_warp)
-            args = (data.qpos, data.qvel, data.time, data.mocap_pos, data.mocap_quat, ctrl)
+            args = (data.qpos, data.qvel, data.time, ctrl)
             out = self._warp.substeps(*(a[None] for a in args))
             data = data.replace(**{f: x[0] for f, x in out.items()})
         # Brake: whatever contacts did, nothing carries into the next action.
         return data.replace(qvel=data.qvel.at[self.dof_adr].set(0.0), ctrl=jnp.zeros_like(data.ctrl))
+
+    def agent_geom_poses(self, qpos: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """World poses (xpos f32[G, 3], xmat f32[G, 3, 3]) of the agent's geoms (`agent_geoms`) at
+        qpos: the slide joints translate its body in x, y and the hinge turns it about z."""
+        x, y, yaw = (qpos[a] for a in self.qpos_adr)
+        c, s = jnp.cos(yaw), jnp.sin(yaw)
+        zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+        rot = jnp.stack([jnp.stack([c, -s, zero]), jnp.stack([s, c, zero]), jnp.stack([zero, zero, one])])
+        xpos = self._agent_geom_pos @ rot.T + jnp.stack([x, y, zero])
+        return xpos, rot @ self._agent_geom_mat
 
     def agent_pose(self, data: SimState | mjx.Data) -> jax.Array:
         """(x, y, yaw) with yaw wrapped to [-pi, pi)."""

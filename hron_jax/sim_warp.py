@@ -2,12 +2,11 @@
 
 Role
 ----
-`WarpPhysics(mj_model, contacts_per_env).substeps(qpos, qvel, time, mocap_pos, mocap_quat, ctrl)` runs
-one env step's substeps with `mjx.step` on MJX-Warp (kernels through a JAX FFI call; CUDA on NVIDIA
-GPUs, Warp's CPU backend elsewhere) for a batch of N worlds and returns the fields the rest of the
-code reads. Shapes: qpos f32[N, nq], qvel f32[N, nv], time f32[N], mocap_pos f32[N, nmocap, 3], mocap_quat
-f32[N, nmocap, 4], ctrl f32[N, S, nu] (one row per substep) -> dict of f32[N, ...]: qpos, qvel,
-time, xpos, xquat, xmat, geom_xpos, geom_xmat.
+`WarpPhysics(mj_model, contacts_per_env).substeps(qpos, qvel, time, ctrl)` runs one env step's
+substeps with `mjx.step` on MJX-Warp (kernels through a JAX FFI call; CUDA on NVIDIA GPUs, Warp's
+CPU backend elsewhere) for a batch of N worlds of the Simulator's physics model and returns the
+fields the rest of the code reads. Shapes: qpos f32[N, nq], qvel f32[N, nv], time f32[N], ctrl
+f32[N, S, nu] (one row per substep) -> dict of f32[N, ...]: qpos, qvel, time.
 
 Why a batch function and not a per-env `mjx.Data` carried through the env: MJX-Warp keeps one
 contact pool of `naconmax` entries shared by all worlds of a call (contacts are not batched), so
@@ -32,7 +31,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-OUT_FIELDS = ("qpos", "qvel", "time", "xpos", "xquat", "xmat", "geom_xpos", "geom_xmat")
+OUT_FIELDS = ("qpos", "qvel", "time")
 
 
 def _traced_constant(x):
@@ -77,15 +76,15 @@ class WarpPhysics:
                 self._templates[n] = jax.tree.map(np.asarray, d)
         return self._templates[n]
 
-    def _substeps(self, qpos, qvel, time, mocap_pos, mocap_quat, ctrl):
+    def _substeps(self, qpos, qvel, time, ctrl):
         template = jax.tree.map(_traced_constant, self._template(qpos.shape[0]))
 
-        def world(q, v, t, mp, mq, c):
-            d = template.replace(qpos=q, qvel=v, time=t, mocap_pos=mp, mocap_quat=mq)
+        def world(q, v, t, c):
+            d = template.replace(qpos=q, qvel=v, time=t)
             d, _ = jax.lax.scan(lambda d, u: (mjx.step(self.model, d.replace(ctrl=u)), None), d, c)
             return {f: getattr(d, f) for f in OUT_FIELDS}
 
-        return jax.vmap(world)(qpos, qvel, time, mocap_pos, mocap_quat, ctrl)
+        return jax.vmap(world)(qpos, qvel, time, ctrl)
 
     def _substeps_vmap(self, axis_size, in_batched, *args):
         # Fold the vmapped axis into the batch: one call steps all worlds (nested vmaps fold in turn).

@@ -198,11 +198,12 @@ def test_vmap_equals_single_runs(sim, fns):
 
 
 def test_state_carries_what_the_next_step_reads():
-    """SimState keeps 8 of mjx.Data's fields; stepping it gives bitwise the trajectory of carrying
-    the whole mjx.Data (step_data), through free motion, turns and steps blocked by the wall: none
-    of the dropped fields is read by the next step."""
+    """SimState keeps 4 of the physics model's mjx.Data fields; stepping it gives bitwise the
+    trajectory of carrying the whole mjx.Data (step_data), through free motion, turns and steps
+    blocked by the wall: none of the dropped fields is read by the next step. Its scene geom
+    poses are native MuJoCo's kinematics of the scene model at the final pose."""
     sim = S.Simulator.from_xml(SCENE, S.SimConfig(physics="jax"))
-    turns = [S.BACKWARD, S.TURN_LEFT, S.FORWARD, S.TURN_RIGHT, S.FORWARD, S.FORWARD]
+    turns = [S.BACKWARD, S.TURN_LEFT, S.FORWARD, S.TURN_RIGHT, S.FORWARD, S.FORWARD, S.TURN_LEFT]
     actions = jnp.asarray([S.FORWARD] * 4 + turns)
 
     @jax.jit
@@ -215,8 +216,15 @@ def test_state_carries_what_the_next_step_reads():
     state, full = both(jnp.asarray([WALL_X - R - 0.45, 0.3, 0.0], jnp.float32))
     assert float(state.qpos[0]) > WALL_X - R - 0.05  # the walk ended against the wall
     assert np.abs(np.asarray(full.qacc_warmstart)).max() > 0  # the solver state is not blank
-    for f, v in vars(state).items():
-        np.testing.assert_array_equal(np.asarray(v), np.asarray(getattr(full, f)), err_msg=f)
+    for f in S.PHYSICS_FIELDS:
+        np.testing.assert_array_equal(np.asarray(getattr(state, f)), np.asarray(getattr(full, f)), err_msg=f)
+    m = sim.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[sim.qpos_adr] = np.asarray(state.qpos)
+    mujoco.mj_kinematics(m, d)
+    assert abs(float(state.qpos[2])) > 0.1  # the agent's geoms were turned, not only moved
+    np.testing.assert_allclose(np.asarray(state.geom_xpos), d.geom_xpos, atol=2e-6)
+    np.testing.assert_allclose(np.asarray(state.geom_xmat).reshape(-1, 9), d.geom_xmat, atol=2e-6)
 
 
 def test_init_places_mocap_objects(sim, fns):
@@ -243,33 +251,43 @@ def test_table_corner_blocks_like_a_wall(sim, fns):
 
 
 def test_physics_model_blockers_span_the_agent(sim):
-    """The physics model grows the table (slab and leg) to prisms over the agent's height about
+    """The physics model is the agent (two bodies: world and agent) and the blockers as world geoms
+    at their world poses; it grows the table (slab and leg) to prisms over the agent's height about
     their centres; walls (already taller) and the model the camera sees keep their sizes."""
     m, mp = sim.mj_model, sim.physics_model
+    assert mp.nbody == 2 and mp.nmocap == 0 and mp.nq == m.nq == 3
+    assert mp.ngeom == len(sim.blockers) + len(sim.agent_geoms)
     table = list(range(m.body("furniture:table:0").geomadr[0], m.body("furniture:table:0").geomadr[0] + 2))
     assert sorted(sim.grown_blockers) == table
-    d = mujoco.MjData(mp)
-    mujoco.mj_kinematics(mp, d)
+    d, dp = mujoco.MjData(m), mujoco.MjData(mp)
+    mujoco.mj_kinematics(m, d)
+    mujoco.mj_kinematics(mp, dp)
+    np.testing.assert_allclose(dp.geom_xpos[sim.physics_blockers], d.geom_xpos[sim.blockers], atol=1e-9)
+    np.testing.assert_allclose(dp.geom_xmat[sim.physics_blockers], d.geom_xmat[sim.blockers], atol=1e-7)
+    physics = dict(zip(sim.blockers, sim.physics_blockers))
     cfg = sim.config
     for g in table:
-        assert d.geom_xpos[g, 2] - mp.geom_size[g, 2] < cfg.bottom_clearance - cfg.contact_skin
-        assert d.geom_xpos[g, 2] + mp.geom_size[g, 2] > cfg.height + cfg.contact_skin
+        assert d.geom_xpos[g, 2] - mp.geom_size[physics[g], 2] < cfg.bottom_clearance - cfg.contact_skin
+        assert d.geom_xpos[g, 2] + mp.geom_size[physics[g], 2] > cfg.height + cfg.contact_skin
     np.testing.assert_array_equal(m.geom_size[table, 2], [0.025, 0.35])
-    np.testing.assert_array_equal(mp.geom_pos, m.geom_pos)
-    wall = m.geom("wall:east").id
-    np.testing.assert_array_equal(mp.geom_size[wall], m.geom_size[wall])
+    same = [g for g in sim.blockers if g not in table]
+    np.testing.assert_array_equal(mp.geom_size[[physics[g] for g in same]], m.geom_size[same])
+    assert m.geom("wall:east").id in same
 
 
 def test_contact_filter(sim):
     m = sim.physics_model
     agent_geom = sim.collider_geom
-    assert list(np.nonzero(m.geom_contype)[0]) == [agent_geom]
+    assert list(np.nonzero(m.geom_contype)[0]) == [agent_geom] == [m.geom(S.AGENT_COLLIDER).id]
     assert m.geom_type[agent_geom] == mujoco.mjtGeom.mjGEOM_SPHERE
-    np.testing.assert_array_equal(sim.mj_model.geom_contype, m.geom_contype)
-    floor = m.body("room:living_room:0").geomadr[0]
-    apple = m.body("object:apple:0").geomadr[0]
+    assert list(np.nonzero(m.geom_conaffinity)[0]) == list(sim.physics_blockers)
+    ms = sim.mj_model  # the same filter, which the geodesic map reads
+    assert list(np.nonzero(ms.geom_contype)[0]) == [ms.geom(S.AGENT_COLLIDER).id]
+    assert list(np.nonzero(ms.geom_conaffinity)[0]) == list(sim.blockers)
+    floor = ms.body("room:living_room:0").geomadr[0]
+    apple = ms.body("object:apple:0").geomadr[0]
     assert floor not in sim.blockers and apple not in sim.blockers
-    walls = [m.geom("wall:east").id, m.geom("wall:diag").id]
+    walls = [ms.geom("wall:east").id, ms.geom("wall:diag").id]
     assert set(walls) <= set(sim.blockers)
     # MJX sees exactly agent x blockers as candidate pairs; the broadphase keeps K of them
     from mujoco.mjx._src import collision_driver
@@ -283,11 +301,12 @@ def test_contact_filter(sim):
 
 def test_capsule_collider_is_the_model_before_spheres():
     """collider='capsule' (runs before 2026-12-02): one agent geom, the capsule grown by the skin,
-    colliding against the scene's own boxes (no physics model of its own)."""
+    colliding against the scene's own boxes (none grown)."""
     sim = S.Simulator.from_xml(SCENE, S.SimConfig(physics="jax", collider="capsule"))
-    m = sim.mj_model
-    assert sim.physics_model is m and len(sim.grown_blockers) == 0
-    assert list(sim.agent_geoms) == [sim.collider_geom] == [m.geom(S.AGENT_GEOM).id]
+    m = sim.physics_model
+    assert len(sim.grown_blockers) == 0
+    np.testing.assert_array_equal(m.geom_size[sim.physics_blockers], sim.mj_model.geom_size[sim.blockers])
+    assert len(sim.agent_geoms) == 1 and [sim.collider_geom] == [m.geom(S.AGENT_GEOM).id]
     assert m.geom_type[sim.collider_geom] == mujoco.mjtGeom.mjGEOM_CAPSULE
     assert m.geom_size[sim.collider_geom, 0] == pytest.approx(R + sim.config.contact_skin)
     assert list(np.nonzero(m.geom_contype)[0]) == [sim.collider_geom]
@@ -304,9 +323,9 @@ def test_auto_max_geom_pairs_keeps_every_contact():
     assert sim.max_geom_pairs < len(sim.blockers) // 4  # culling actually removes pairs
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
-    agent_geom = sim.collider_geom
-    lo = d.geom_xpos[sim.blockers, :2].min(0)
-    hi = d.geom_xpos[sim.blockers, :2].max(0)
+    agent_geom, blockers = sim.collider_geom, sim.physics_blockers
+    lo = d.geom_xpos[blockers, :2].min(0)
+    hi = d.geom_xpos[blockers, :2].max(0)
     rng = np.random.default_rng(0)
     touching = 0
     for _ in range(3000):
@@ -317,11 +336,11 @@ def test_auto_max_geom_pairs_keeps_every_contact():
             continue
         touching += 1
         metric = (
-            np.linalg.norm(d.geom_xpos[sim.blockers] - d.geom_xpos[agent_geom], axis=1)
-            - m.geom_rbound[sim.blockers]
+            np.linalg.norm(d.geom_xpos[blockers] - d.geom_xpos[agent_geom], axis=1)
+            - m.geom_rbound[blockers]
             - m.geom_rbound[agent_geom]
         )
         for g in geoms:
-            mg = metric[list(sim.blockers).index(g)]
+            mg = metric[list(blockers).index(g)]
             assert (metric <= mg).sum() <= sim.max_geom_pairs, (g, d.qpos[sim.qpos_adr])
     assert touching > 100

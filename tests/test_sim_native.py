@@ -54,15 +54,16 @@ def native_walks(sims):
     collision-free starts spread over the house (forward-heavy, so they meet walls and furniture)."""
     sim = sims["jax"]
     m, d = sim.physics_model, mujoco.MjData(sim.physics_model)
+    ms, ds = sim.mj_model, mujoco.MjData(sim.mj_model)  # the scene, where its floors are
     rng = np.random.default_rng(0)
-    mujoco.mj_forward(m, d)
-    roots = m.body_rootid[m.geom_bodyid]
-    floors = [g for g in range(sim.scene_ngeom) if m.body(roots[g]).name.startswith("room:")]
+    mujoco.mj_kinematics(ms, ds)
+    roots = ms.body_rootid[ms.geom_bodyid]
+    floors = [g for g in range(sim.scene_ngeom) if ms.body(roots[g]).name.startswith("room:")]
     starts = []
     while len(starts) < WALKERS:
         g = floors[rng.integers(len(floors))]
-        half = np.abs(d.geom_xmat[g].reshape(3, 3)) @ m.geom_size[g]
-        xy = d.geom_xpos[g, :2] + rng.uniform(-1, 1, 2) * np.maximum(half[:2] - sim.config.radius, 0)
+        half = np.abs(ds.geom_xmat[g].reshape(3, 3)) @ ms.geom_size[g]
+        xy = ds.geom_xpos[g, :2] + rng.uniform(-1, 1, 2) * np.maximum(half[:2] - sim.config.radius, 0)
         pose = np.array([*xy, rng.uniform(-math.pi, math.pi)])
         mujoco.mj_resetData(m, d)
         d.qpos[sim.qpos_adr] = pose

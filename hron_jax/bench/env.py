@@ -101,12 +101,13 @@ def _free_poses(sim, n: int, rng: np.random.Generator) -> np.ndarray:
     """n random (x, y, yaw) where the agent touches no blocker (native collision check)."""
     import mujoco
 
+    ms, ds = sim.mj_model, mujoco.MjData(sim.mj_model)
+    mujoco.mj_kinematics(ms, ds)
+    floor = [g for g in range(sim.scene_ngeom) if g not in set(sim.blockers)]
+    pts = ds.geom_xpos[floor if floor else list(range(sim.scene_ngeom)), :2]
+    lo, hi = pts.min(0), pts.max(0)
     m = sim.physics_model
     d = mujoco.MjData(m)
-    mujoco.mj_kinematics(m, d)
-    floor = [g for g in range(sim.scene_ngeom) if g not in set(sim.blockers)]
-    pts = d.geom_xpos[floor if floor else list(range(sim.scene_ngeom)), :2]
-    lo, hi = pts.min(0), pts.max(0)
     out = []
     while len(out) < n:
         d.qpos[sim.qpos_adr] = [*rng.uniform(lo, hi), rng.uniform(-np.pi, np.pi)]
@@ -126,8 +127,11 @@ class _Native:
         from .. import sim as S
 
         self.mujoco, self.sim, self.cam = mujoco, sim, cam
-        self.m = sim.physics_model  # what MJX steps; rays go to the scene as it is (same geom poses)
+        self.m = sim.physics_model  # what MJX steps; rays go to the scene as it is
         self.m_scene = sim.mj_model
+        # The scene's geom poses: static, and the agent's own are excluded from the rays.
+        self.d_scene = mujoco.MjData(self.m_scene)
+        mujoco.mj_kinematics(self.m_scene, self.d_scene)
         self.datas = []
         for p in poses:
             d = mujoco.MjData(self.m)
@@ -178,7 +182,7 @@ class _Native:
         vec = (self.dirs_cam @ rot.T).ravel()
         self.mujoco.mj_multiRay(
             self.m_scene,
-            d,
+            self.d_scene,
             o,
             vec,
             None,
