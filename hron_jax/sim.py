@@ -309,18 +309,19 @@ def _physics_model(m: mujoco.MjModel, d: mujoco.MjData, blockers, cfg: SimConfig
     zhi = cfg.height + cfg.contact_skin  # and its highest
     G = mujoco.mjtGeom
     box, capsule, sphere = int(G.mjGEOM_BOX), int(G.mjGEOM_CAPSULE), int(G.mjGEOM_SPHERE)
+    primitive = (box, capsule, sphere, int(G.mjGEOM_CYLINDER), int(G.mjGEOM_ELLIPSOID))  # size says all
     spec = mujoco.MjSpec()
     grown = []
     for g in blockers:
         kind = int(m.geom_type[g])  # ints throughout: numpy ints and MuJoCo's enums do not compare
-        if kind not in (box, capsule, sphere):
+        if kind not in primitive:
             raise ValueError(
                 f"geom {m.geom(g).name or g} blocks the agent but is a {G(kind).name}; blockers "
-                "must be boxes, capsules or spheres (docs/scene_format.md)"
+                "must be boxes, capsules, spheres, cylinders or ellipsoids (docs/scene_format.md)"
             )
         rot = d.geom_xmat[g].reshape(3, 3)
         size = m.geom_size[g].copy()
-        if cfg.collider == "sphere" and kind != sphere:
+        if cfg.collider == "sphere" and kind in (box, capsule):
             is_capsule = kind == capsule
             axis = 2 if is_capsule else int(np.abs(rot[2]).argmax())  # the local axis closest to z
             i = 1 if is_capsule else axis  # the size entry of that half extent (a capsule's segment)

@@ -96,12 +96,12 @@ FAST_COMPILE = {
 }
 
 
-def make_mesh(num_envs: int):
-    """1-D mesh over all devices (of every process in a multi-host job); env batches are split
-    over its 'devices' axis."""
+def make_mesh(num_envs: int, devices=None):
+    """1-D mesh over `devices` (default: all devices, of every process in a multi-host job); env
+    batches are split over its 'devices' axis."""
     import jax
 
-    devices = jax.devices()
+    devices = jax.devices() if devices is None else list(devices)
     if num_envs % len(devices):
         where = f'{jax.process_count()} processes' if jax.process_count() > 1 else 'this process'
         raise UsageError(
@@ -133,10 +133,12 @@ def _program_key(config: TrainConfig) -> TrainConfig:
     )
 
 
-def programs(config: TrainConfig) -> Programs:
+def programs(config: TrainConfig, devices=None) -> Programs:
+    """The jitted programs of `config` on `devices` (default: all; compile-only devices of a
+    GPU target give XLA:GPU's programs on a machine without one, hron_jax.bench.compile)."""
     import jax
 
-    return _programs(_program_key(config), tuple(jax.devices()))
+    return _programs(_program_key(config), tuple(jax.devices() if devices is None else devices))
 
 
 @functools.lru_cache(maxsize=4)
@@ -147,8 +149,7 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
 
     from hron_jax.ppo import make_ppo
 
-    del devices  # part of the cache key only
-    mesh = make_mesh(config.ppo.num_envs)
+    mesh = make_mesh(config.ppo.num_envs, devices)
     try:
         env = build_env(config)
         network = build_network(config, env.num_actions)

@@ -113,3 +113,31 @@ def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
     for argv in train:
         config = config_from_args(vars(train_parser().parse_args(argv)))
         assert config.task == 'exploratory' and config.ppo.num_envs == 1024, argv
+
+
+def test_gpu_target_compiles_for_a_gpu_without_one():
+    """`bench compile --gpu-target`: an unknown target is one line naming the valid ones; with the
+    CUDA plugin (the cuda extra) XLA:GPU compiles for an H100 on this machine, without it the error
+    says how to install it."""
+    from hron_jax.bench.compile import gpu_target_devices
+
+    with pytest.raises(SystemExit, match=r"--gpu-target 'b100x': expected one of \['h100'\]"):
+        gpu_target_devices('b100x')
+    import importlib.util
+
+    def installed(module):
+        try:
+            return importlib.util.find_spec(module) is not None
+        except ModuleNotFoundError:  # no jax_plugins package at all
+            return False
+
+    if not any(installed(f'jax_plugins.xla_cuda{v}') for v in (12, 13)):
+        with pytest.raises(SystemExit, match=r"needs JAX's CUDA plugin \(pip install -e '\.\[cuda\]'\)"):
+            gpu_target_devices('h100')
+        return
+    (device,) = gpu_target_devices('h100')
+    assert device.device_kind == 'NVIDIA H100 80GB HBM3'
+    on = jax.sharding.SingleDeviceSharding(device)
+    x = jax.ShapeDtypeStruct((256, 256), jnp.float32, sharding=on)
+    text = jax.jit(lambda a: jnp.tanh(a @ a).sum()).lower(x).compile().as_text()
+    assert 'custom_call_target="__cublas' in text or '__triton' in text  # a GPU program, not XLA:CPU's

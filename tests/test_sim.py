@@ -344,3 +344,30 @@ def test_auto_max_geom_pairs_keeps_every_contact():
             mg = metric[list(blockers).index(g)]
             assert (metric <= mg).sum() <= sim.max_geom_pairs, (g, d.qpos[sim.qpos_adr])
     assert touching > 100
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            (
+                '<geom type="box" pos="0.55 0.35 0.35" size="0.025 0.025 0.35"/>',
+                '<geom type="mesh" mesh="tetra" pos="0.55 0.35 0.35"/>',
+            ),
+            "blocks the agent but is a mjGEOM_MESH; blockers must be boxes, capsules, spheres",
+        ),
+        (
+            (
+                '<body name="furniture:table:0" pos="0 4 0">',
+                '<body name="furniture:table:0" pos="0 4 0"><joint type="hinge" axis="0 0 1"/>',
+            ),
+            "the scene has 1 joint coordinates; scene bodies must be static or mocap",
+        ),
+    ],
+)
+def test_scenes_the_physics_model_cannot_take_are_named(change, message):
+    """A blocker the physics model cannot rebuild from its sizes (a mesh) or a scene body with a
+    joint: a one-line ValueError that says what is wrong, not a wrong simulation."""
+    mesh = '<mesh name="tetra" vertex="0 0 0  0.1 0 0  0 0.1 0  0 0 0.7"/></asset>'
+    with pytest.raises(ValueError, match=message):
+        S.Simulator.from_xml(SCENE.replace(*change).replace("</asset>", mesh), S.SimConfig(physics="jax"))

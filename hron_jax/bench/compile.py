@@ -18,6 +18,13 @@ proxies for how much XLA had to work through; unlike seconds, which vary by tens
 shared machine, they are the same in every run of the same code). Compile seconds include tracing
 and lowering. With --by-source, then a second table: the chunk's HLO instructions
 per source module (`hlo_by_source`), i.e. which part of the code makes the program big.
+
+--gpu-target h100 (or a GpuTargetConfigProto text file): the same programs compiled by XLA:GPU for
+that GPU on this machine, which needs no GPU (a compile-only device of
+`jax.experimental.topologies`; install the CUDA plugin with `pip install -e ".[cuda]"`, and keep
+JAX_PLATFORMS=cpu where there is no GPU). The seconds are this machine's CPU doing XLA:GPU's work
+(HLO passes, LLVM to PTX, ptxas), without autotuning, which needs the device: a proxy that ranks
+changes to the GPU program between GPU leases, not the seconds a GPU host takes.
 """
 
 from __future__ import annotations
@@ -32,15 +39,65 @@ from .common import stream_table
 _INSTRUCTION = re.compile(r"\s*(?:ROOT )?%(\S+) = .*? ([a-z][\w-]*)\(")
 
 
-def bench_compile(config):
-    """Yields {stage, compile_s, hlo_mb, instructions} per stage of the training program of `config`."""
+# An NVIDIA H100 SXM (80 GB) as XLA:GPU's compiler sees it (stream_executor's GpuDeviceInfoProto):
+# compute capability 9.0, 132 SMs, 228 KB of shared memory per SM (227 KB opt-in per block), 50 MB
+# of L2, 3.35 TB/s, CUDA 13 and cuDNN 9 as the jax[cuda13] wheels bring them.
+H100_TARGET = """
+gpu_device_info {
+  threads_per_block_limit: 1024 threads_per_warp: 32 shared_memory_per_block: 49152
+  shared_memory_per_core: 233472 shared_memory_per_block_optin: 232448 threads_per_core_limit: 2048
+  core_count: 132 fpus_per_core: 128 block_dim_limit_x: 2147483647 block_dim_limit_y: 65535
+  block_dim_limit_z: 65535 memory_bandwidth: 3352320000000 l2_cache_size: 52428800
+  clock_rate_ghz: 1.98 device_memory_size: 84929347584 registers_per_core_limit: 65536
+  registers_per_block_limit: 65536 cuda_compute_capability { major: 9 minor: 0 }
+}
+platform_name: "CUDA"
+dnn_version_info { major: 9 minor: 10 }
+runtime_version { major: 13 }
+device_description_str: "NVIDIA H100 80GB HBM3"
+"""
+GPU_TARGETS = {"h100": H100_TARGET}
+
+
+def gpu_target_devices(target: str) -> list:
+    """Compile-only devices of one GPU (`--gpu-target`: a GPU_TARGETS name or a text file of an
+    XLA GpuTargetConfigProto); programs lowered for them compile with XLA:GPU without a GPU."""
+    import os
+
+    from jax.experimental import topologies
+
+    if target in GPU_TARGETS:
+        text = GPU_TARGETS[target]
+    elif os.path.isfile(target):
+        with open(target) as f:
+            text = f.read()
+    else:
+        raise SystemExit(
+            f"bench compile: --gpu-target {target!r}: expected one of {sorted(GPU_TARGETS)} or a "
+            "GpuTargetConfigProto text file"
+        )
+    try:
+        topology = topologies.get_topology_desc(platform="cuda", target_config=text, topology="1x1x1")
+    except Exception as e:  # no CUDA plugin, or one that cannot make topologies
+        raise SystemExit(
+            f"bench compile: --gpu-target needs JAX's CUDA plugin (pip install -e '.[cuda]'): {e}"
+        ) from None
+    return list(topology.devices)
+
+
+def bench_compile(config, devices=None):
+    """Yields {stage, compile_s, hlo_mb, instructions} per stage of the training program of
+    `config`, compiled for `devices` (default: this machine's; `gpu_target_devices`)."""
     import jax
 
     from ..training import FAST_COMPILE, programs
 
     jax.config.update("jax_enable_compilation_cache", False)
     num_envs = config.ppo.num_envs
-    prog = programs(config)
+    prog = programs(config, devices)
+    # the stages' inputs live where the programs run (compile-only devices cannot take arrays)
+    on = jax.sharding.NamedSharding(prog.mesh, jax.sharding.PartitionSpec())
+    placed = lambda tree: jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=on), tree)
     options = prog.compiler_options
     env, network = prog.env, prog.network
     keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
@@ -70,7 +127,7 @@ def bench_compile(config):
         if fn is None:
             compiled = prog.chunk.lower(prog.abstract, 1).compile(options)
         else:  # init as the Trainer compiles it (Programs.initialize)
-            compiled = fn.lower(*args).compile(dict(FAST_COMPILE) if name == "init" else options)
+            compiled = fn.lower(*placed(args)).compile(dict(FAST_COMPILE) if name == "init" else options)
         seconds = time.perf_counter() - t
         text = compiled.as_text() or ""
         yield dict(stage=name, compile_s=seconds, hlo_mb=len(text) / 1e6, instructions=hlo_instructions(text))
@@ -184,6 +241,12 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--env-option", action="append", default=[], help="NAME=VALUE as in train.py, e.g. sim.physics=warp"
     )
+    p.add_argument(
+        "--gpu-target",
+        default=None,
+        help="compile XLA:GPU's programs for this GPU without one: h100, or a GpuTargetConfigProto "
+        "text file (needs the CUDA plugin: the cuda extra)",
+    )
 
 
 def run(a: argparse.Namespace) -> None:
@@ -196,16 +259,19 @@ def run(a: argparse.Namespace) -> None:
         dict(task=a.task, model=a.model, num_envs=a.num_envs, env_option=a.env_option, **extra)
     )
     physics = f", physics {config.env.sim.physics}" if a.task != "choice" else ""
+    devices = gpu_target_devices(a.gpu_target) if a.gpu_target else None
+    target = f", XLA:GPU for {devices[0].device_kind} (no device: compile only)" if devices else ""
     print(
-        f"task {a.task}, model {a.model}, {a.num_envs} envs{physics}, cold compiles (no persistent cache)",
+        f"task {a.task}, model {a.model}, {a.num_envs} envs{physics}{target}, cold compiles (no "
+        "persistent cache)",
         flush=True,
     )
-    stream_table(HEADER, bench_compile(config), format_row)
+    stream_table(HEADER, bench_compile(config, devices), format_row)
     if a.by_source:
         from ..training import programs
 
         deep_tracebacks()
-        prog = programs(config)
+        prog = programs(config, devices)
         text = prog.chunk.lower(prog.abstract, 1).compile(prog.compiler_options).as_text() or ""
         counts = hlo_by_source(text)
         total = sum(counts.values())
