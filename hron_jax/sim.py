@@ -288,10 +288,10 @@ def _physics_model(m: mujoco.MjModel, d: mujoco.MjData, blockers, cfg: SimConfig
     Why only these: the agent is the one body that moves and the blockers the only geoms it
     touches, and MJX's step costs what the model holds, not what moves: kinematics, velocities and
     inertias of every body, every substep. With the scene's 121 bodies (house.xml) that was half of
-    an env step's physics on the CPU, and on a GPU it made XLA emit kernels over all bodies at once
-    whose LLVM compile alone took up to 7.6 s each (README, Physics). The agent's motion is the
-    same: the same shapes at the same world poses, and the agent's contact parameters win every
-    pair (its geoms' priority).
+    an env step's physics on the CPU, and for a GPU XLA fused MJX's per-body work into kernels over
+    all bodies at once, the largest of which took 7.6 s to compile on its own (README, Physics).
+    The agent's motion is the same: the same shapes at the same world poses, and the agent's
+    contact parameters win every pair (its geoms' priority).
 
     With the sphere collider (default), every upright blocker box (and vertical capsule) also grows
     about its centre in z until it spans the agent's height (+ 5 cm each way). With every blocker a
