@@ -82,7 +82,8 @@ main() {
         --image-size 128 --repeats 2 ;;
       train128p) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \
         --image-size 128 --repeats 2 --model-option conv=patches ;;
-      compile) step "$(box 200)" python3 -m hron_jax.bench compile --num-envs 1024 --env-option sim.physics=jax ;;
+      compile) step "$(box 200)" python3 -m hron_jax.bench compile --num-envs 1024 --num-steps 16 \
+        --minibatches 8 --env-option sim.physics=jax ;;
       trainpy) step "$(box 220)" python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
         train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;

@@ -2,7 +2,7 @@
 
 Measures what makes train.py's program slow to compile: each stage is jitted and compiled on its
 own, cold (the persistent XLA cache is off for this process), for the config train.py builds from
-the same options (--task, --model, --num-envs, --preset, --fast-compile):
+the same options (--task, --model, --num-envs, --num-steps, --minibatches, --preset, --fast-compile):
     reset        vmap(env.reset) over num_envs
     step         vmap(env.step): physics, render, graph update and the in-step auto-reset
     final_obs    vmap(env.final_obs): the pre-reset render PPO bootstraps truncated episodes from
@@ -233,6 +233,8 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", default="exploratory", choices=("choice", "directed", "exploratory"))
     p.add_argument("--model", default="rgbd_sg_attn")
     p.add_argument("--num-envs", type=int, default=64)
+    p.add_argument("--num-steps", type=int, default=None, help="rollout length (default: the task's)")
+    p.add_argument("--minibatches", type=int, default=None, help="per epoch (default: the task's)")
     p.add_argument("--preset", default=None, help="a run_config preset, e.g. paper")
     p.add_argument("--fast-compile", action="store_true", help="XLA without LLVM optimisation")
     p.add_argument(
@@ -253,6 +255,7 @@ def run(a: argparse.Namespace) -> None:
     from ..cli import config_from_args
 
     extra = {"fast_compile": True} if a.fast_compile else {}
+    extra.update({k: v for k, v in (("num_steps", a.num_steps), ("minibatches", a.minibatches)) if v})
     if a.preset:
         extra["preset"] = a.preset
     config = config_from_args(
