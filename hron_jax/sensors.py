@@ -354,7 +354,8 @@ class Camera:
             geom_instance,
             geom_class,
             exclude_body=sim.agent_body,
-        )  # not sim.mjx_model: MJX steps grown blockers (sim.physics_model), the camera sees true ones
+            mjx_model=sim.scene_mjx_model,  # the scene as it is; MJX steps only the blockers, grown
+        )
 
     # ------------------------------------------------------------------ public API
     def render(self, data: mjx.Data, pose: jax.Array) -> CameraOutput:

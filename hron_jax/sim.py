@@ -389,7 +389,8 @@ class Simulator:
     int: geoms that block the agent), `grown_blockers` (those the physics model grows), `nmocap`,
     `default_mocap_pos` / `default_mocap_quat` (the file's mocap poses).
     Of the physics model: `physics_model` (the agent and the blockers only, `_physics_model`; what
-    MJX steps, and what native references must step), `mjx_model` (it on the device),
+    MJX steps, and what native references must step), `mjx_model` (it on the device; the scene
+    model's is `scene_mjx_model`),
     `physics_blockers` (its geoms of `blockers`, in that order), `collider_geom` (its agent geom
     that collides), `max_geom_pairs`. Both models have the agent's three joints as their only
     degrees of freedom, so qpos / qvel mean the same in both.
@@ -477,7 +478,7 @@ class Simulator:
             else np.zeros((0, 4))
         )
         self._template = mjx.put_data(mp, mujoco.MjData(mp))
-        self._scene_model = mjx.put_model(m)
+        self.scene_mjx_model = mjx.put_model(m)
         self._scene_template = mjx.put_data(m, mujoco.MjData(m))
         # The agent's geoms in its body frame (the body sits at the world origin at qpos 0), so the
         # scene's geom poses follow the agent after every step without the scene's kinematics.
@@ -509,7 +510,7 @@ class Simulator:
             repl["mocap_pos"] = jnp.asarray(mocap_pos, d.mocap_pos.dtype).reshape(d.mocap_pos.shape)
         if mocap_quat is not None:
             repl["mocap_quat"] = jnp.asarray(mocap_quat, d.mocap_quat.dtype).reshape(d.mocap_quat.shape)
-        scene = mjx.kinematics(self._scene_model, d.replace(**repl))
+        scene = mjx.kinematics(self.scene_mjx_model, d.replace(**repl))
         p = self._template
         return SimState(
             time=p.time,
@@ -550,9 +551,7 @@ class Simulator:
         return SimState(
             **{f: getattr(d, f) for f in PHYSICS_FIELDS},
             geom_xpos=state.geom_xpos.at[self.agent_geoms].set(xpos.astype(state.geom_xpos.dtype)),
-            geom_xmat=state.geom_xmat.at[self.agent_geoms].set(
-                xmat.reshape(state.geom_xmat[self.agent_geoms].shape).astype(state.geom_xmat.dtype)
-            ),
+            geom_xmat=state.geom_xmat.at[self.agent_geoms].set(xmat.astype(state.geom_xmat.dtype)),
         )
 
     def step_data(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
