@@ -18,7 +18,7 @@ default; a reactive policy run greedily can loop forever) unless --greedy.
 Shapes: `evaluate(...)` returns numpy per-episode metrics [S, E] ('success', 'spl',
 'episode_length', 'path_length', 'return'), 'end' [S, E] (index of each episode's last step) and,
 for the navigation tasks, 'poses' [S, E, T, 3] before every step and 'last_pose' [S, E, 3] after
-the last one; `summarize` reduces them to SR / SPL mean, std over seeds
+the last one, and 'compile_s' / 'run_s' (seconds); `summarize` reduces them to SR / SPL mean, std over seeds
 (of the per-seed means) and std over all episodes.
 
 Outputs in --out (default RUN_DIR/eval_<policy>_<greedy|sampled>, or runs/eval_<task>_<policy>...
@@ -35,6 +35,7 @@ import argparse
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -109,8 +110,11 @@ def evaluate(
         return states, jax.vmap(episode)(states, jax.random.split(rng, episodes))
 
     run = jax.jit(jax.vmap(one_seed, in_axes=(None if params is None else 0, 0)))
-    states, traj = run.lower(params, policy_keys).compile(compiler_options)(params, policy_keys)
-    traj = jax.device_get(traj)
+    t0 = time.perf_counter()
+    compiled = run.lower(params, policy_keys).compile(compiler_options)
+    t1 = time.perf_counter()
+    states, traj = jax.device_get(compiled(params, policy_keys))
+    t2 = time.perf_counter()
     finished, end = episode_ends(traj['done'])  # [S, E]
     take = lambda x: np.take_along_axis(np.asarray(x), end[..., None], -1)[..., 0]
     out = {k: take(traj['metrics'][k]).astype(np.float64) for k in EPISODE_METRICS}
@@ -124,6 +128,7 @@ def evaluate(
         )[:, :, 0]
         out['d0'] = np.asarray(traj['d0'])[..., 0]
     out['states'] = states
+    out['compile_s'], out['run_s'] = t1 - t0, t2 - t1
     return out
 
 
@@ -435,6 +440,11 @@ def main(argv=None, prog: str = 'eval.py') -> int:
     fast = args.fast_compile or config.fast_compile
     result = evaluate(
         env, policy, params, num_seeds, args.episodes, args.seed, dict(FAST_COMPILE) if fast else None
+    )
+    steps = num_seeds * args.episodes * env.config.max_steps
+    log(
+        f"compiled in {result['compile_s']:.1f} s; played {steps} env steps in {result['run_s']:.1f} s "
+        f"({steps / result['run_s']:.0f} steps/s, every episode to the env's max_steps)"
     )
     summary = summarize(result)
     row = dict(

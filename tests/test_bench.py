@@ -137,6 +137,16 @@ def test_gpu_target_compiles_for_a_gpu_without_one():
         return
     (device,) = gpu_target_devices('h100')
     assert device.device_kind == 'NVIDIA H100 80GB HBM3'
+    # As a user runs it, without JAX_PLATFORMS (the plugin's device check fails without a GPU
+    # unless the bench makes the local backend the CPU first).
+    script = (
+        "import argparse; from hron_jax.bench import compile as c; "
+        "c.before_jax(argparse.Namespace(gpu_target='h100')); "
+        "print(c.gpu_target_devices('h100')[0].device_kind)"
+    )
+    env = {k: v for k, v in os.environ.items() if k != 'JAX_PLATFORMS'}
+    r = subprocess.run([sys.executable, '-c', script], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and r.stdout.strip() == 'NVIDIA H100 80GB HBM3', r.stderr[-2000:]
     on = jax.sharding.SingleDeviceSharding(device)
     x = jax.ShapeDtypeStruct((256, 256), jnp.float32, sharding=on)
     text = jax.jit(lambda a: jnp.tanh(a @ a).sum()).lower(x).compile().as_text()

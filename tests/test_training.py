@@ -11,6 +11,7 @@ only the first one compiles), and eval.py.
 import dataclasses
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -583,6 +584,8 @@ def test_eval_writes_table(reference, tmp_path, xla_cache):
         '| SR ↑ | SPL ↑ |' in table and '| choice | no | SG + TD ATTN | trained (sampled) | 1 x 6 |' in table
     )
     assert table.splitlines()[2] in r.stdout
+    # compile and play timed apart: 1 seed x 6 one-step episodes
+    assert re.search(r'compiled in \d+\.\d s; played 6 env steps in \d+\.\d s \(\d+ steps/s', r.stderr)
     res = json.loads((out / 'eval.json').read_text())
     assert res['step'] == 8 and res['summary']['episodes'] == 6
     sr = np.asarray(res['per_episode']['success'])

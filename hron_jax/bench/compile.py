@@ -251,6 +251,18 @@ def add_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def before_jax(a: argparse.Namespace) -> None:
+    """--gpu-target needs no local GPU: unless JAX_PLATFORMS says otherwise the local backend is
+    the CPU, so JAX's CUDA plugin registers without its device check (cuInit fails on a machine
+    without a GPU, and the plugin then offers no topologies)."""
+    import os
+
+    if a.gpu_target and not os.environ.get("JAX_PLATFORMS"):
+        import jax
+
+        jax.config.update("jax_platforms", "cpu")
+
+
 def run(a: argparse.Namespace) -> None:
     from ..cli import config_from_args
 
