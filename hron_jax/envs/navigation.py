@@ -67,6 +67,7 @@ from hron_jax import sim as S
 from hron_jax.envs import NAV_TASKS
 from hron_jax.envs import placement as P
 from hron_jax.envs.base import EnvState, initial_state, next_state, select_tree
+from hron_jax.envs.table_cache import episode_tables
 from hron_jax.graph_builder import GraphBuilder, GraphConfig, Placement
 from hron_jax.metric_map import MapConfig, MetricMap
 from hron_jax.scenes.loader import Scene, load_scene
@@ -161,7 +162,7 @@ class NavigationEnv:
         self.metric_map = (
             MetricMap(scene, config.camera, config.map, premap=config.premap) if config.metric_map else None
         )
-        self.tables = P.build_tables(
+        self.tables = episode_tables(
             scene,
             self.sim.mj_model,
             config.placement,

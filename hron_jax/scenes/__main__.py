@@ -28,11 +28,12 @@ def scene_stats(path: str, seed: int = 0, tables=None) -> dict:
     import numpy as np
 
     from hron_jax.envs import placement as P
+    from hron_jax.envs.table_cache import episode_tables
     from hron_jax.sim import Simulator
 
     scene = load_scene(path)
     if tables is None:
-        tables = P.build_tables(scene, Simulator.from_file(path).mj_model)
+        tables = episode_tables(scene, Simulator.from_file(path).mj_model)
     ep = jax.jit(lambda k: P.sample_exploratory(k, tables))(jax.random.PRNGKey(seed))
     active = np.asarray(ep.placement.active)
     static = scene.num_rooms + scene.num_furniture
