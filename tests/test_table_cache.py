@@ -2,6 +2,7 @@
 makes, every input of build_tables is in the key, and a damaged or absent cache only costs a build."""
 
 import dataclasses
+import os
 import shutil
 from pathlib import Path
 
@@ -61,8 +62,10 @@ def test_tables_round_trip_bitwise_through_the_disk(built, cache, monkeypatch):
     assert_same_tables(first, fresh)
     assert TC.episode_tables(scene, model, success_distance=1.0) is first  # in-process copy
     monkeypatch.setattr(TC, '_memory', {})  # a new process: from the disk, no build
+    (path,) = cache.iterdir()
+    os.utime(path, (0, 0))
     loaded = TC.episode_tables(scene, model, success_distance=1.0)
-    assert calls == [1]
+    assert calls == [1] and path.stat().st_mtime > 0  # used now: the last to be pruned
     assert_same_tables(loaded, fresh)
     assert loaded.fields.dtype == np.float16 and np.isinf(loaded.fields).any()
 
@@ -110,3 +113,13 @@ def test_a_damaged_file_is_rebuilt_and_none_writes_nothing(built, cache, monkeyp
     path.unlink()
     assert_same_tables(TC.episode_tables(scene, model, success_distance=1.0), fresh)
     assert list(cache.iterdir()) == []
+
+
+def test_only_the_most_recently_used_files_are_kept(tmp_path, monkeypatch):
+    monkeypatch.setattr(TC, 'MAX_FILES', 2)
+    for age, name in enumerate(['newest', 'newer', 'old', 'oldest']):
+        (tmp_path / f'{name}.npz').write_bytes(b'')
+        os.utime(tmp_path / f'{name}.npz', (1e9 - age, 1e9 - age))
+    (tmp_path / 'notes.txt').write_text('not a table')
+    TC._prune(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['newer.npz', 'newest.npz', 'notes.txt']

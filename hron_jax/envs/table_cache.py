@@ -14,10 +14,11 @@ the versions of jax, jaxlib, numpy and mujoco, and JAX's backend (CPU and GPU so
 differently). Any change to any of them builds afresh, so a cached table is never stale.
 
 Where: $HRON_JAX_TABLES_CACHE, else ~/.cache/hron_jax/tables, one <key>.npz per table set
-(a house's is ~10-40 MB: fields in float16); HRON_JAX_TABLES_CACHE=none keeps only the
-in-process copy. Files are written to a temporary name and renamed, so processes that build the
-same tables at once never read a partial file; an unreadable file is rebuilt and replaced. The
-arrays are read-only, since every env of a process that builds the same tables shares them.
+(house.xml's: 12 MB, fields in float16), the MAX_FILES most recently used kept;
+HRON_JAX_TABLES_CACHE=none keeps only the in-process copy. Files are written to a temporary name
+and renamed, so processes that build the same tables at once never read a partial file; an
+unreadable file is rebuilt and replaced. The arrays are read-only, since every env of a process
+that builds the same tables shares them.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from hron_jax.envs import placement as P
 from hron_jax.geodesic import OccupancyGrid
 
 CACHE_ENV = 'HRON_JAX_TABLES_CACHE'
+MAX_FILES = 32  # most recently used table files kept (a house's: ~12 MB)
 _PACKAGE = Path(__file__).resolve().parents[1]
 _memory: dict[str, P.EpisodeTables] = {}
 
@@ -150,11 +152,25 @@ def episode_tables(scene, model, config: P.PlacementConfig | None = None, **kwar
         if path is not None:
             try:
                 _save(tables, path)
+                _prune(path.parent)
             except OSError:  # a read-only or full disk only costs the next process a build
                 pass
+    else:
+        try:
+            os.utime(path)  # recently used: the last to be pruned
+        except OSError:
+            pass
     _freeze(tables)
     _memory[key] = tables
     return tables
+
+
+def _prune(where: Path) -> None:
+    """Delete all but the MAX_FILES most recently used table files: every edit of hron_jax's
+    source keys new files, and the old ones are never read again."""
+    files = sorted(where.glob('*.npz'), key=lambda f: f.stat().st_mtime, reverse=True)
+    for f in files[MAX_FILES:]:
+        f.unlink(missing_ok=True)
 
 
 def _freeze(tables: P.EpisodeTables) -> None:
