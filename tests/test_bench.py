@@ -18,6 +18,7 @@ from hron_jax.bench.compile import deep_tracebacks, hlo_by_source, hlo_instructi
 from hron_jax.bench.profile import op_times
 from hron_jax.cli import build_parser as train_parser
 from hron_jax.cli import config_from_args
+from hron_jax.evaluation import build_parser as eval_parser
 from hron_jax.paths import REPO_ROOT
 from hron_jax.ppo import compute_gae
 
@@ -103,8 +104,12 @@ def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
     runs = gpu_script_commands(tmp_path, 'tools/gpu_bench.sh', '600')
     bench = [a[2:] for a in runs if a[:2] == ['-m', 'hron_jax.bench']]
     train = [a[1:] for a in runs if a[:1] == ['train.py']]
-    assert len(bench) + len(train) == len(runs), runs
-    assert len(bench) == 11 and len(train) == 2  # the stages of the default list
+    evals = [a[1:] for a in runs if a[:1] == ['eval.py']]
+    assert len(bench) + len(train) + len(evals) == len(runs), runs
+    assert len(bench) == 11 and len(train) == 2 and len(evals) == 1  # the stages of the default list
+    for argv in evals:
+        args = eval_parser().parse_args(argv)
+        assert args.run == '/tmp/gpu_bench_run' and args.episodes == 20, argv
     for argv in bench:
         args = bench_parser().parse_args(argv)  # SystemExit (exit 2) names a bad option
         # option values are checked where train.py checks them (UsageError names a bad one)

@@ -29,6 +29,8 @@
 #       compile   bench compile at 1024 envs: compile seconds and HLO size per stage on this GPU
 #       trainpy   train.py as a user runs it (1024 envs x 16 steps, 8 minibatches, 2 updates,
 #                 no compile cache): init / chunk compile seconds and env steps/s from its log
+#       evalpy    eval.py on trainpy's run as a user runs it (20 episodes, no compile cache): its
+#                 logged compile and play seconds (run after trainpy, which leaves the run)
 #       trainpy-na  trainpy with XLA:GPU autotuning off (--xla_gpu_autotune_level=0): its share of
 #                 the compile
 #
@@ -40,7 +42,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env env-nocull profile train32 train32bf profilebf train128 train128p compile trainpy trainpy-na env-warp train32w)
+((${#STAGES[@]})) || STAGES=(env env-nocull profile train32 train32bf profilebf train128 train128p compile trainpy evalpy trainpy-na env-warp train32w)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -85,9 +87,11 @@ main() {
       compile) step "$(box 200)" python3 -m hron_jax.bench compile --num-envs 1024 --num-steps 16 \
         --minibatches 8 --env-option sim.physics=jax ;;
       trainpy) step "$(box 220)" python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run ;;
+      evalpy) step "$(box 150)" python3 eval.py /tmp/gpu_bench_run --episodes 20 --plots 0 \
+        --compile-cache none ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
         train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;
-      *) echo "unknown stage $s (valid: env env-nocull env-warp profile train32 train32w train32bf profilebf train128 train128p compile trainpy trainpy-na)" ;;
+      *) echo "unknown stage $s (valid: env env-nocull env-warp profile train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy trainpy-na)" ;;
     esac
   done
 }
