@@ -23,6 +23,7 @@ from pathlib import Path
 from hron_jax.envs import TASKS
 from hron_jax.errors import CheckpointError, ConfigError, NonFiniteError, UsageError
 from hron_jax.multihost import init_distributed
+from hron_jax.paths import CACHE_ROOT
 from hron_jax.run_config import (
     DEFAULT_MODEL,
     DEFAULT_TASK,
@@ -291,9 +292,7 @@ def setup_compile_cache(path: str | None) -> None:
     import jax
 
     if path is None:
-        path = os.environ.get('JAX_COMPILATION_CACHE_DIR') or os.path.join(
-            os.path.expanduser('~'), '.cache', 'hron_jax', 'xla'
-        )
+        path = os.environ.get('JAX_COMPILATION_CACHE_DIR') or os.path.join(CACHE_ROOT, 'xla')
     if path.lower() == 'none':
         return
     jax.config.update('jax_compilation_cache_dir', path)

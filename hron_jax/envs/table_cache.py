@@ -24,6 +24,7 @@ that builds the same tables shares them.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import os
 import tempfile
@@ -33,6 +34,7 @@ import numpy as np
 
 from hron_jax.envs import placement as P
 from hron_jax.geodesic import OccupancyGrid
+from hron_jax.paths import CACHE_ROOT
 
 CACHE_ENV = 'HRON_JAX_TABLES_CACHE'
 MAX_FILES = 32  # most recently used table files kept (a house's: ~12 MB)
@@ -45,9 +47,10 @@ def cache_dir() -> Path | None:
     value = os.environ.get(CACHE_ENV)
     if value and value.lower() == 'none':
         return None
-    return Path(value) if value else Path.home() / '.cache' / 'hron_jax' / 'tables'
+    return Path(value) if value else Path(CACHE_ROOT) / 'tables'
 
 
+@functools.cache  # the code this process runs is the code it imported
 def _source_digest() -> bytes:
     h = hashlib.sha256()
     for f in sorted(_PACKAGE.rglob('*.py')):
@@ -85,8 +88,9 @@ def table_key(scene, model, config: P.PlacementConfig | None = None, **kwargs) -
             continue
         value = getattr(scene, f.name)
         h.update(f.name.encode())
-        h.update(_model_bytes(value) if f.name == 'model' else b'')
-        if f.name != 'model':
+        if f.name == 'model':
+            h.update(_model_bytes(value))
+        else:
             _update(h, value)
     h.update(_model_bytes(model))
     _update(h, config or P.PlacementConfig())
