@@ -84,7 +84,7 @@ def load_run(run_dir, step: int | None = None, seed_index: int = 0) -> Run:
     run_dir = Path(run_dir).resolve()  # orbax restores from absolute paths only
     config = load_config(run_dir)
     env = build_env(config, episodic=True)
-    network = build_network(config, env.num_actions)
+    network = build_network(config, env)
     if not network.config.use_graph:
         raise ValueError(f'{run_dir}: model {config.model!r} has no scene-graph branch to analyse')
     params, step = restore_params(run_dir, config, env, network, step)

@@ -408,7 +408,7 @@ def main(argv=None, prog: str = 'eval.py') -> int:
         except (ValueError, TypeError, OSError) as e:
             raise UsageError(f'cannot build the {config.task} env: {e}') from None
         if policy_name == 'trained':
-            network = build_network(config, env.num_actions)
+            network = build_network(config, env)
             params, step = restore_params(run_dir, config, env, network, step)
             policy, num_seeds = model_policy(network, args.greedy), config.num_seeds
         else:

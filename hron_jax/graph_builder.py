@@ -10,9 +10,11 @@ vmappable; the only state is one boolean per node:
     g = gb.graph(disc, placement, pose)                             # jraph.GraphsTuple
 
 Node table (N_MAX rows): every instance of the scene in the loader's order (rooms, furniture,
-objects of the pool), then padding. A node is *discovered* once its instance covers at least
-`GraphConfig.frame_min_pixels(W, H)` pixels (`min_pixels` at the reference 128 x 128, scaled by the
-frame's pixel count, at least 1; see GraphConfig) whose depth is below `detect_range` in one frame
+objects of the pool), then padding; `node_type_counts` (rooms, furniture, objects) is that static
+layout, which lets the HGT layers slice the table by type instead of sorting it.
+A node is *discovered* once its instance covers at least `GraphConfig.frame_min_pixels(W, H)`
+pixels (`min_pixels` at the reference 128 x 128, scaled by the frame's pixel count, at least 1;
+see GraphConfig) whose depth is below `detect_range` in one frame
 (depth is the camera's z-depth along the optical axis, so the range is a slab in front of the
 camera, not a sphere).
 A room is discovered like any instance when enough of its floor is seen, or when the agent
@@ -148,6 +150,8 @@ class GraphBuilder:
         n_real = scene.num_nodes
         self.num_objects = scene.num_objects
         self.object_offset = scene.num_rooms + scene.num_furniture
+        # The node table's static type layout (rows by type, then padding), for the HGT layers.
+        self.node_type_counts = (scene.num_rooms, scene.num_furniture, scene.num_objects)
         n_max = config.max_nodes or n_real
         if n_max < n_real:
             raise ValueError(

@@ -462,10 +462,11 @@ def build_env(config: TrainConfig, episodic: bool = False, **overrides):
     return make_env(config.task, config.scene_path, config.env, **overrides)
 
 
-def build_network(config: TrainConfig, num_actions: int):
+def build_network(config: TrainConfig, env):
+    """The run's ActorCritic for `env` (its actions and its node table's type layout)."""
     from hron_jax.models import make_model
 
-    return make_model(config.model, num_actions, config.network)
+    return make_model(config.model, env.num_actions, config.network, node_type_counts=env.node_type_counts)
 
 
 def run_label(config: TrainConfig) -> str:

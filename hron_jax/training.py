@@ -152,7 +152,7 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
     mesh = make_mesh(config.ppo.num_envs, devices)
     try:
         env = build_env(config)
-        network = build_network(config, env.num_actions)
+        network = build_network(config, env)
     except (ValueError, TypeError, OSError) as e:  # e.g. a scene file the loader rejects
         raise UsageError(f'cannot build the {config.task} env / {config.model} model: {e}') from None
     ppo = make_ppo(config.ppo, env, network)

@@ -378,6 +378,19 @@ def test_padding_never_leaks(sym):
     out_g, out_h = apply(params, g, goal), apply(params, h, goal)
     assert np.abs(np.asarray(out_g)).sum() > 0
     np.testing.assert_allclose(out_g, out_h, rtol=1e-5, atol=1e-6)
+    # The static type layout (node_type_counts): every real row has its range's type, the padding
+    # rows are dead; HGT layers that slice the table by it read the same vector.
+    counts = big.node_type_counts
+    assert counts == gb.node_type_counts == (scene.num_rooms, scene.num_furniture, scene.num_objects)
+    row_type = np.repeat(np.arange(GT.NUM_NODE_TYPES), counts)
+    np.testing.assert_array_equal(np.asarray(big.node_type)[: sum(counts)], row_type)
+    live = np.asarray(h.nodes["mask"])
+    np.testing.assert_array_equal(
+        np.asarray(h.nodes["node_type"])[: sum(counts)][live[: sum(counts)]], row_type[live[: sum(counts)]]
+    )
+    assert not live[sum(counts) :].any()
+    sliced = SceneGraphEncoder(enc.config, V.NUM_CLASSES, counts)
+    np.testing.assert_allclose(jax.jit(sliced.apply)(params, h, goal), out_g, rtol=1e-5, atol=1e-6)
 
 
 def _permuted_scene_file(tmp_path):

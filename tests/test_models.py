@@ -300,6 +300,103 @@ def test_hgt_batch_matches_single_graphs_and_differentiates():
         np.testing.assert_allclose(a, b, atol=1e-4, rtol=1e-4)
 
 
+def _type_layout(g, rng, padding_rows=3):
+    """g with its rows sorted by node type (rooms, furniture, objects; dead rows stay in their
+    type's range) and then `padding_rows` dead rows of NaN with edges from them marked live: the
+    static layout of the navigation envs' node tables. Returns (graph, node_type_counts, new row
+    of each old row)."""
+    order = np.argsort(g["node_type"], kind="stable")
+    inv = np.argsort(order)
+    n, k = len(order), padding_rows
+    pad_s = np.arange(n, n + k).repeat(2).astype(np.int32)
+    layout = dict(
+        x=np.concatenate([g["x"][order], np.full((k, g["x"].shape[1]), np.nan, np.float32)]),
+        node_type=np.concatenate([g["node_type"][order], rng.integers(0, 3, k)]).astype(np.int32),
+        mask=np.concatenate([g["mask"][order], np.zeros(k, bool)]),
+        senders=np.concatenate([inv[g["senders"]], pad_s]).astype(np.int32),
+        receivers=np.concatenate([inv[g["receivers"]], rng.integers(0, n, 2 * k)]).astype(np.int32),
+        edge_type=np.concatenate([g["edge_type"], rng.integers(0, 9, 2 * k)]).astype(np.int32),
+        edge_mask=np.concatenate([g["edge_mask"], np.ones(2 * k, bool)]),
+    )
+    return layout, tuple(int(c) for c in np.bincount(g["node_type"], minlength=3)), inv
+
+
+def _hgt_apply(module, p, x, node_type, mask, senders, receivers, edge_type, edge_mask):
+    rel = edge_relations(node_type, senders, receivers, edge_type)
+    out, state = module.apply(
+        {"params": p}, x, node_type, mask, senders, receivers, rel, edge_mask, mutable=["attention"]
+    )
+    return out, state["attention"]["alpha"][0]
+
+
+_GRAPH_KEYS = ("x", "node_type", "mask", "senders", "receivers", "edge_type", "edge_mask")
+
+
+@pytest.mark.parametrize("softmax", ["joint", "per_relation"])
+def test_hgt_static_type_layout_matches_type_blocks_and_pyg(softmax):
+    """HGTConv(node_type_counts=...) slices each type's rows instead of sorting nodes into type
+    blocks: on graphs with that layout (dead rows inside the ranges, NaN padding rows after them,
+    live edges from the padding, nodes masked out at random) it gives the type-block path's
+    outputs, attention and parameter gradients, batched and single; with joint softmax, PyG's."""
+    d, p1, p2, g, run = _reference("hgt")
+    rng = np.random.default_rng(12)
+    padded, padded_rows = _pad(g, 4, 12, rng)
+    base, counts, rows = _type_layout(padded, rng)
+    graphs = [base]
+    for drop in (0.2, 0.5):
+        gg = dict(base, x=base["x"].copy(), mask=base["mask"] & (rng.random(len(base["mask"])) > drop))
+        gg["x"][~gg["mask"]] = 1e3
+        graphs.append(gg)
+    batch = {k: np.stack([gg[k] for gg in graphs]) for k in _GRAPH_KEYS}
+    blocks = HGTConv(16, heads=2, softmax=softmax)
+    sliced = HGTConv(16, heads=2, softmax=softmax, node_type_counts=counts)
+    params = jax.tree.map(jnp.asarray, p1)
+    fns = {}
+    for name, m in (("blocks", blocks), ("sliced", sliced)):
+        apply = jax.default_matmul_precision("highest")(functools.partial(_hgt_apply, m))
+        loss = lambda p, *a, apply=apply: jnp.sum(jnp.sin(apply(p, *a)[0]))  # noqa: E731
+        fns[name] = (jax.jit(apply), jax.jit(jax.grad(loss)))
+    args = lambda gg: tuple(gg[k] for k in _GRAPH_KEYS)  # noqa: E731
+    out_b, alpha_b = fns["blocks"][0](params, *args(batch))
+    out_s, alpha_s = fns["sliced"][0](params, *args(batch))
+    assert np.isfinite(np.asarray(out_s)).all() and np.abs(np.asarray(out_s)).max() > 0.1
+    np.testing.assert_allclose(out_s, out_b, atol=TOL, rtol=0)
+    np.testing.assert_allclose(alpha_s, alpha_b, atol=1e-6, rtol=0)
+    grad_b, grad_s = (fns[k][1](params, *args(batch)) for k in ("blocks", "sliced"))
+    for a, b in zip(jax.tree.leaves(grad_s), jax.tree.leaves(grad_b)):
+        assert np.isfinite(np.asarray(a)).all()
+        np.testing.assert_allclose(a, b, atol=1e-4, rtol=1e-4)
+    out_1, alpha_1 = fns["sliced"][0](params, *args(graphs[1]))  # one graph: a batch of one
+    np.testing.assert_allclose(out_1, out_b[1], atol=TOL, rtol=0)
+    np.testing.assert_allclose(alpha_1, alpha_b[1], atol=1e-6, rtol=0)
+    if softmax == "joint":
+        np.testing.assert_allclose(np.asarray(out_s)[0][rows[padded_rows]], d["out1"], atol=TOL, rtol=0)
+
+
+def test_hgt_static_type_layout_drops_nodes_off_their_rows():
+    """A live node whose node_type is not its row's type, or a live padding row, is dropped (as if
+    masked out), and counts that do not fit the table are an error."""
+    _, p1, _, g, _ = _reference("hgt")
+    lay, counts, _ = _type_layout(g, np.random.default_rng(13))
+    bad = dict(lay, node_type=lay["node_type"].copy(), mask=lay["mask"].copy())
+    wrong = counts[0]  # the first furniture row
+    bad["node_type"][wrong] = gt.OBJECT
+    bad["mask"][sum(counts)] = True  # a padding row
+    expected = dict(lay, mask=lay["mask"].copy())
+    expected["mask"][wrong] = False
+    params = jax.tree.map(jnp.asarray, p1)
+    sliced = HGTConv(16, heads=2, node_type_counts=counts)
+    out, _ = _hgt_apply(sliced, params, *(bad[k] for k in _GRAPH_KEYS))
+    ref, _ = _hgt_apply(HGTConv(16, heads=2), params, *(expected[k] for k in _GRAPH_KEYS))
+    np.testing.assert_allclose(out, ref, atol=TOL, rtol=0)
+    assert not np.asarray(out)[[wrong, sum(counts)]].any()
+    for counts_bad in ((counts[0], counts[1]), (counts[0], counts[1], len(lay["x"]))):
+        with pytest.raises(ValueError, match="node_type_counts"):
+            _hgt_apply(
+                HGTConv(16, heads=2, node_type_counts=counts_bad), params, *(lay[k] for k in _GRAPH_KEYS)
+            )
+
+
 def test_illegal_relation_triple_is_dropped():
     node_type = jnp.array([gt.ROOM, gt.OBJECT])
     rel = edge_relations(

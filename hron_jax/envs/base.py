@@ -7,6 +7,8 @@ learner vmaps them:
     env.step(state: EnvState, action: i32[]) -> EnvState
     env.num_actions: int
     env.observation_example() -> obs pytree (one env, no batch axis)
+    env.node_type_counts: tuple[int, ...] | None, rows of obs['graph']'s node table by node type
+        when that layout is static (navigation: rooms, furniture, objects, then padding), else None
 
 ``EnvState`` fields (all per env, scalars are shape ``[]``):
 

@@ -180,6 +180,7 @@ class ChoiceEnv:
     """Relational object choice bandit; functional API of hron_jax.envs.base."""
 
     num_actions = 2
+    node_type_counts = None  # nodes in a random order: no static type layout (envs.base)
 
     def __init__(self, config: ChoiceConfig = ChoiceConfig()):
         self.config = config

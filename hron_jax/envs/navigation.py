@@ -194,6 +194,11 @@ class NavigationEnv:
     def unwrapped(self):
         return self
 
+    @property
+    def node_type_counts(self) -> tuple[int, int, int]:
+        """Rows of obs['graph']'s node table by type (rooms, furniture, objects), then padding."""
+        return self.graph_builder.node_type_counts
+
     def sample_episode(self, key) -> P.Episode:
         """The episode a reset with this key draws (no physics, no rendering)."""
         t = self.tables

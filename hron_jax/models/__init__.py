@@ -1,7 +1,7 @@
 """Models: flax actor-critic networks of the paper (HGT + task-driven attention) and baselines.
 
 API
-    make_model(name, num_actions, config=None, num_classes=None) -> ActorCritic
+    make_model(name, num_actions, config=None, num_classes=None, node_type_counts=None) -> ActorCritic
         names: rgbd, rgbd_mm, rgbd_sg, rgbd_sg_attn (main), gcn (Kipf), yang (Yang et al.)
     ActorCritic.apply(variables, obs) -> (logits f32[(B,) A], value f32[(B,)])
     attention_readout(model, variables, obs) -> (logits, value, attention dict)

@@ -49,6 +49,7 @@ class _ActorCriticCore(nn.Module):
     num_actions: int
     num_classes: int
     config: ModelConfig
+    node_type_counts: tuple[int, ...] | None = None
 
     @nn.compact
     def __call__(self, obs):
@@ -76,7 +77,7 @@ class _ActorCriticCore(nn.Module):
             word_vectors = load_category_vectors(self.num_classes)
         if cfg.use_graph:
             feats.append(
-                SceneGraphEncoder(cfg, self.num_classes, name="graph_encoder")(
+                SceneGraphEncoder(cfg, self.num_classes, self.node_type_counts, name="graph_encoder")(
                     obs["graph"], obs.get("goal_classes"), img, word_vectors
                 )
             )
@@ -103,7 +104,9 @@ class _ActorCriticCore(nn.Module):
 class ActorCritic(nn.Module):
     """Policy and value network. `apply(variables, obs) -> (logits, value)`.
 
-    Fields: num_actions, num_classes (semantic class vocabulary size, NUM_CLASSES), config.
+    Fields: num_actions, num_classes (semantic class vocabulary size, NUM_CLASSES), config,
+    node_type_counts (the static type layout of the env's node table, `env.node_type_counts`, or
+    None: the HGT layers then read every node's type from obs; same parameters either way).
     obs: one observation dict (logits f32[A], value f32[]) or a batch with the same leading axes
     on every leaf (logits f32[*lead, A], value f32[*lead]); the leading axes are those of
     obs['goal'] beyond its last (feature) axis.
@@ -112,27 +115,36 @@ class ActorCritic(nn.Module):
     num_actions: int
     num_classes: int
     config: ModelConfig = ModelConfig()
+    node_type_counts: tuple[int, ...] | None = None
 
     @nn.compact
     def __call__(self, obs):
         lead = jnp.shape(obs["goal"])[:-1]
         if not lead:
-            return _ActorCriticCore(self.num_actions, self.num_classes, self.config, name="core")(obs)
+            return _ActorCriticCore(
+                self.num_actions, self.num_classes, self.config, self.node_type_counts, name="core"
+            )(obs)
         # Any number of leading batch axes ([B], [T, B], ...): flatten them into one, run the
         # network on the whole batch, restore them on the outputs.
         flat = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + jnp.shape(a)[len(lead) :]), obs)
-        logits, value = _ActorCriticCore(self.num_actions, self.num_classes, self.config, name="core")(flat)
+        logits, value = _ActorCriticCore(
+            self.num_actions, self.num_classes, self.config, self.node_type_counts, name="core"
+        )(flat)
         return logits.reshape(lead + logits.shape[1:]), value.reshape(lead)
 
 
 def make_model(
-    name: str, num_actions: int, config: ModelConfig | None = None, num_classes: int | None = None
+    name: str,
+    num_actions: int,
+    config: ModelConfig | None = None,
+    num_classes: int | None = None,
+    node_type_counts: tuple[int, ...] | None = None,
 ) -> ActorCritic:
     """The `ActorCritic` of a named variant (see config.VARIANTS).
 
     name: 'rgbd', 'rgbd_mm', 'rgbd_sg', 'rgbd_sg_attn' (main), 'gcn' (Kipf), 'yang' (Yang et al.).
     config: sizes and use_rgbd; the variant's own fields override it. num_classes defaults to
-    hron_jax.scenes.vocabulary.NUM_CLASSES.
+    hron_jax.scenes.vocabulary.NUM_CLASSES. node_type_counts: the env's (see ActorCritic).
     """
     if name not in VARIANTS:
         raise ValueError(f"unknown model {name!r}; valid names: {', '.join(VARIANTS)}")
@@ -141,7 +153,10 @@ def make_model(
 
         num_classes = vocabulary.NUM_CLASSES
     cfg = dataclasses.replace(config or ModelConfig(), **VARIANTS[name])
-    return ActorCritic(num_actions=num_actions, num_classes=int(num_classes), config=cfg)
+    counts = None if node_type_counts is None else tuple(int(c) for c in node_type_counts)
+    return ActorCritic(
+        num_actions=num_actions, num_classes=int(num_classes), config=cfg, node_type_counts=counts
+    )
 
 
 def attention_readout(model: ActorCritic, variables, obs):

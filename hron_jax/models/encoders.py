@@ -240,10 +240,12 @@ class SceneGraphEncoder(nn.Module):
     all of them with a leading batch axis [B] (the GNN layers then run the whole batch at once).
     Output: f32[(B,) hidden + pool_flag]. Sows ('attention', 'pool_weights') f32[(B,) N] and, per
     HGT layer, ('attention', 'alpha') f32[(B,) E, heads].
+    node_type_counts: the static type layout of the env's node table, if it has one (HGTConv).
     """
 
     config: ModelConfig
     num_classes: int
+    node_type_counts: tuple[int, ...] | None = None
 
     @nn.compact
     def __call__(self, graph, goal_classes=None, image_embedding=None, word_vectors=None):
@@ -268,7 +270,12 @@ class SceneGraphEncoder(nn.Module):
         for i in range(cfg.gnn_layers):
             if cfg.gnn == "hgt":
                 conv = HGTConv(
-                    cfg.hidden, cfg.heads, softmax=cfg.hgt_softmax, dtype=cfg.gnn_dtype, name=f"hgt_{i}"
+                    cfg.hidden,
+                    cfg.heads,
+                    softmax=cfg.hgt_softmax,
+                    dtype=cfg.gnn_dtype,
+                    node_type_counts=self.node_type_counts,
+                    name=f"hgt_{i}",
                 )
                 h = conv(h, node_type, mask, senders, receivers, relation, edge_mask)
             else:

@@ -197,6 +197,38 @@ def _slot_kernels(rel_kernel, slot_rel):
     return w.transpose(0, 2, 3, 1, 4).reshape(t, h, d, s * d)
 
 
+def _kvq_columns(a, f: int):
+    """PyG's k | q | v columns of kqv_kernel / kqv_bias reordered k | v | q (k and v one slice)."""
+    return jnp.concatenate([a[..., :f], a[..., 2 * f :], a[..., f : 2 * f]], -1)
+
+
+def _relation_edges(live, relation, sender_type, num_relations: int, rel_src):
+    """(live, rel): an edge of an illegal triple (relation -1), or whose sender is not of its
+    relation's source type (rel_src None: unknown, nothing dropped), is dropped; rel is relation
+    clipped to [0, R) (dead edges keep any such index)."""
+    rel = jnp.clip(relation, 0, num_relations - 1)
+    live = live & (relation >= 0)
+    if rel_src is not None:  # a relation's edges leave nodes of its source type (edge_relations)
+        live = live & (jnp.asarray(rel_src)[rel] == sender_type)
+    return live, rel
+
+
+def _attend(p_rel, q_e, k_e, v_e, rel, live, dst, rows: int, softmax: str):
+    """The attention of every edge and the messages summed at the receivers.
+
+    q_e / k_e / v_e [E, H, D] (the receiver's query, the sender's relation-transformed key and
+    value), rel i32[E] in [0, R), live bool[E], dst i32[E] the receiver's row of `rows`. Returns
+    (gelu(aggregate) f32[rows, H D], alpha f32[E, H]).
+    """
+    h, d = q_e.shape[-2:]
+    score = _dot_f32(q_e, k_e) * take_rows(p_rel, rel) / math.sqrt(d)
+    alpha = masked_segment_softmax(score, live, *_softmax_groups(dst, rel, rows, p_rel.shape[0], softmax))
+    # where() rather than a product with alpha = 0: a non-finite value on a dead row must not leak.
+    msg = jnp.where(live[:, None, None], _f32(v_e) * alpha[..., None], 0.0)
+    agg = jax.ops.segment_sum(msg, dst, rows).reshape(rows, h * d)
+    return jax.nn.gelu(agg, approximate=False), alpha
+
+
 def _hgt(
     params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int, softmax: str
 ):
@@ -217,19 +249,17 @@ def _hgt(
     c = _block_size(n)
 
     ntype = jnp.clip(node_type, 0, t - 1)
-    live = live_edges(node_mask, senders, receivers, edge_mask) & (relation >= 0)
-    rel = jnp.clip(relation, 0, r - 1)
-    if rel_src is not None:  # a relation's edges leave nodes of its source type (edge_relations)
-        live = live & (jnp.asarray(rel_src)[rel] == ntype[senders])
+    live = live_edges(node_mask, senders, receivers, edge_mask)
+    live, rel = _relation_edges(live, relation, ntype[senders], r, rel_src)
 
     pos, src, blk_type, nb = _type_blocks(ntype, t, c)
     rows = nb * c
     # Dead rows are zeroed first, so garbage (even NaN) there reaches no value or gradient.
     x0 = jnp.where(node_mask[:, None], x, 0.0)
     xb = jnp.concatenate([x0, jnp.zeros((1, f_in), x0.dtype)])[src].reshape(nb, c, f_in)
-    # Columns reordered k | v | q (PyG's order is k | q | v) so that k, v and q are slices.
-    kvq = lambda a: jnp.concatenate([a[..., :f], a[..., 2 * f :], a[..., f : 2 * f]], -1)  # noqa: E731
-    kvq_out = _block_dense(xb, blk_type, kvq(params["kqv_kernel"]), kvq(params["kqv_bias"]))
+    kvq_out = _block_dense(
+        xb, blk_type, _kvq_columns(params["kqv_kernel"], f), _kvq_columns(params["kqv_bias"], f)
+    )
     kv = kvq_out[..., : 2 * f].reshape(nb, c, 2, h, d)
     q = kvq_out[..., 2 * f :].reshape(rows, h, d)
 
@@ -248,15 +278,10 @@ def _hgt(
     table = kvt.reshape(-1, d)
     k_e = table[base * s + slot]  # [E, H, D]
     v_e = table[(base + h * c) * s + slot]
-    q_e = q[pd]
-    score = _dot_f32(q_e, k_e) * take_rows(params["p_rel"], rel) / math.sqrt(d)
-    alpha = masked_segment_softmax(score, live, *_softmax_groups(pd, rel, rows, r, softmax))
-    # where() rather than a product with alpha = 0: a non-finite value on a dead row must not leak.
-    msg = jnp.where(live[:, None, None], _f32(v_e) * alpha[..., None], 0.0)
-    agg = jax.ops.segment_sum(msg, pd, rows).reshape(nb, c, f)
-
-    a = jax.nn.gelu(agg, approximate=False).astype(x.dtype)
-    out = _block_dense(a, blk_type, params["out_kernel"], params["out_bias"])
+    a, alpha = _attend(params["p_rel"], q[pd], k_e, v_e, rel, live, pd, rows, softmax)
+    out = _block_dense(
+        a.astype(x.dtype).reshape(nb, c, f), blk_type, params["out_kernel"], params["out_bias"]
+    )
     if f_in == f:
         gate = jax.nn.sigmoid(take_rows(params["skip"], blk_type))[:, None, None]
         out = gate * out + (1.0 - gate) * xb
@@ -283,10 +308,8 @@ def _hgt_single(
     _, _, rel_src = _relation_slots(t, r)
 
     ntype = jnp.clip(node_type, 0, t - 1)
-    live = live_edges(node_mask, senders, receivers, edge_mask) & (relation >= 0)
-    rel = jnp.clip(relation, 0, r - 1)
-    if rel_src is not None:
-        live = live & (jnp.asarray(rel_src)[rel] == ntype[senders])
+    live = live_edges(node_mask, senders, receivers, edge_mask)
+    live, rel = _relation_edges(live, relation, ntype[senders], r, rel_src)
     onehot = jax.nn.one_hot(ntype, t, dtype=x.dtype)
 
     def typed(a, kernel, bias):  # [N, I] -> [N, O], kernel [T, I, O]
@@ -299,11 +322,10 @@ def _hgt_single(
     k_all = jnp.einsum("nhd,rhde->nrhe", k, params["k_rel"]).reshape(n * r, h, d)
     v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
     row = senders * r + rel
-    score = _dot_f32(q[receivers], k_all[row]) * take_rows(params["p_rel"], rel) / math.sqrt(d)
-    alpha = masked_segment_softmax(score, live, *_softmax_groups(receivers, rel, n, r, softmax))
-    msg = jnp.where(live[:, None, None], _f32(v_all[row]) * alpha[..., None], 0.0)
-    agg = jax.ops.segment_sum(msg, receivers, n).reshape(n, f)
-    out = typed(jax.nn.gelu(agg, approximate=False).astype(x.dtype), params["out_kernel"], params["out_bias"])
+    a, alpha = _attend(
+        params["p_rel"], q[receivers], k_all[row], v_all[row], rel, live, receivers, n, softmax
+    )
+    out = typed(a.astype(x.dtype), params["out_kernel"], params["out_bias"])
     if f_in == f:
         gate = jax.nn.sigmoid(onehot.astype(jnp.float32) @ params["skip"])[:, None]
         out = gate * out + (1.0 - gate) * x0
@@ -331,6 +353,101 @@ def _hgt_batch(
         softmax=softmax,
     )
     return out.reshape(b, n, -1), alpha.reshape(b, e, heads)
+
+
+def _hgt_layout(
+    params,
+    x,
+    node_type,
+    node_mask,
+    senders,
+    receivers,
+    relation,
+    edge_mask,
+    *,
+    counts: tuple[int, ...],
+    heads: int,
+    softmax: str,
+):
+    """HGTConv on a batch of graphs [B, N, ...] / [B, E] whose node table has a static type layout:
+    the first counts[0] rows of every graph are of type 0, the next counts[1] of type 1, and so on;
+    rows after them are padding. Returns (out [B, N, F], alpha f32[B, E, H]), the values of
+    `_hgt_batch` (same parameters, same sums in the same order).
+
+    A type's rows of the whole batch are one slice, so each per-type linear is one plain matmul and
+    each relation transform one matmul per (k | v, head): no permutation into type blocks, no
+    per-block weight copies, no padding rows. A live node whose node_type is not its row's type
+    is dropped (as a dead node), so a table that breaks the layout cannot mislabel a node.
+    """
+    b, n, f_in = x.shape
+    t, _, f3 = params["kqv_kernel"].shape
+    f = f3 // 3
+    h, d = heads, f // heads
+    r = params["k_rel"].shape[0]
+    slot_rel, rel_slot, rel_src = _relation_slots(t, r)
+    s = slot_rel.shape[1]
+    ends = np.cumsum(counts)
+    starts = ends - np.asarray(counts)
+    row_type = np.full(n, -1, np.int32)  # padding rows: -1
+    for tau in range(t):
+        row_type[starts[tau] : ends[tau]] = tau
+    rows = b * np.asarray(counts)  # rows of each type's tables
+    q_off = np.concatenate([[0], np.cumsum(rows)[:-1]])  # a type's first row in the q / aggregate table
+    kv_off = q_off * 2 * h * s  # ... and in the flat k | v table (rows of D)
+
+    node_mask = node_mask & (node_type == row_type)
+    # Dead rows are zeroed first, so garbage (even NaN) there reaches no value or gradient.
+    x0 = jnp.where(node_mask[..., None], x, 0.0)
+    kernel, bias = _kvq_columns(params["kqv_kernel"], f), _kvq_columns(params["kqv_bias"], f)
+    w = jnp.stack([_slot_kernels(params["k_rel"], slot_rel), _slot_kernels(params["v_rel"], slot_rel)], 1)
+    xs, qs, kvts = [], [], []
+    for tau in range(t):
+        xs.append(x0[:, starts[tau] : ends[tau]].reshape(rows[tau], f_in))
+        kvq = xs[tau] @ kernel[tau] + bias[tau]
+        qs.append(kvq[:, 2 * f :].reshape(rows[tau], h, d))
+        # The S relation transforms of each row's key and value, in the matmul's own layout
+        # [k | v, H, rows, S D]; each edge gathers its D columns (as in `_hgt`).
+        kv = kvq[:, : 2 * f].reshape(rows[tau], 2, h, d)
+        kvts.append(jnp.einsum("njhd,jhde->jhne", kv, w[tau]).reshape(-1, d))
+    q, table = jnp.concatenate(qs), jnp.concatenate(kvts)
+
+    e = senders.shape[-1]
+    graph = jnp.arange(b, dtype=senders.dtype)[:, None]
+    row_t = jnp.asarray(row_type)
+    flat_mask = node_mask.reshape(-1)
+    live = edge_mask & flat_mask[graph * n + senders] & flat_mask[graph * n + receivers]
+    st, dt = jnp.clip(row_t[senders], 0, t - 1), jnp.clip(row_t[receivers], 0, t - 1)
+    live, rel = _relation_edges(live.reshape(-1), relation.reshape(-1), st.reshape(-1), r, rel_src)
+    count, start = jnp.asarray(counts, senders.dtype), jnp.asarray(starts, senders.dtype)
+    # Rows of dead edges are 0: they index nothing outside the tables (their values are masked).
+    src = jnp.where(live, (graph * count[st] + senders - start[st]).reshape(-1), 0)
+    dst = jnp.where(
+        live,
+        (jnp.asarray(q_off, senders.dtype)[dt] + graph * count[dt] + receivers - start[dt]).reshape(-1),
+        0,
+    )
+    st = st.reshape(-1)
+    n_src = jnp.asarray(rows, senders.dtype)[st][:, None]
+    slot = jnp.asarray(rel_slot)[rel][:, None]
+    k_row = (
+        jnp.asarray(kv_off, senders.dtype)[st][:, None] + (jnp.arange(h) * n_src + src[:, None]) * s + slot
+    )
+    v_row = k_row + h * n_src * s
+    a, alpha = _attend(
+        params["p_rel"], q[dst], table[k_row], table[v_row], rel, live, dst, int(rows.sum()), softmax
+    )
+    a = a.astype(x.dtype)
+
+    outs = []
+    for tau in range(t):
+        out = a[q_off[tau] : q_off[tau] + rows[tau]] @ params["out_kernel"][tau] + params["out_bias"][tau]
+        if f_in == f:
+            gate = jax.nn.sigmoid(params["skip"][tau])
+            out = gate * out + (1.0 - gate) * xs[tau]
+        outs.append(out.reshape(b, counts[tau], f).astype(x.dtype))
+    outs.append(jnp.zeros((b, n - ends[-1], f), x.dtype))
+    out = jnp.concatenate(outs, 1)
+    return jnp.where(node_mask[..., None], out, 0.0).astype(x.dtype), alpha.reshape(b, e, h)
 
 
 class HGTConv(nn.Module):
@@ -392,6 +509,14 @@ class HGTConv(nn.Module):
     graphs (71 nodes, 194 edges), hidden 128, 2 heads that is 0.70 GMAC of matmul per layer forward
     (block padding included) instead of 1.71 GMAC for every type and relation on every node (PyG,
     grouping by type, does about the same as here). Timings: `python -m hron_jax.bench model`.
+
+    node_type_counts: the node table's static type layout, when it has one (the navigation envs'
+    `env.node_type_counts`: rooms, furniture, objects, then padding rows): the first counts[0] rows
+    of every graph are of type 0, the next counts[1] of type 1, and so on. Each type's rows of the
+    batch are then one slice (`_hgt_layout`): no sort into type blocks, no per-block weight copies,
+    no block padding, plain matmuls; same values and parameters. A live node off its row's type
+    (or a live padding row) is dropped. None (the default; the choice task's random node order):
+    types are read from node_type.
     """
 
     features: int
@@ -400,6 +525,7 @@ class HGTConv(nn.Module):
     num_relations: int = gt.NUM_RELATIONS
     softmax: str = "joint"
     dtype: str = "float32"  # compute dtype (ModelConfig.gnn_dtype); parameters are float32
+    node_type_counts: tuple[int, ...] | None = None  # static type layout of the node table, if any
 
     @nn.compact
     def __call__(self, x, node_type, node_mask, senders, receivers, relation, edge_mask):
@@ -438,19 +564,23 @@ class HGTConv(nn.Module):
         dt = jnp.dtype(self.dtype)
         params = {k: v if k in ("p_rel", "skip") else v.astype(dt) for k, v in params.items()}
         x = x.astype(dt)
-        run = _hgt_batch if x.ndim == 3 else _hgt_single
-        out, alpha = run(
-            params,
-            x,
-            node_type,
-            node_mask,
-            senders,
-            receivers,
-            relation,
-            edge_mask,
-            heads=h,
-            softmax=self.softmax,
-        )
+        graph = (node_type, node_mask, senders, receivers, relation, edge_mask)
+        if self.node_type_counts is not None:
+            counts = tuple(self.node_type_counts)
+            if len(counts) != t or min(counts) < 0 or sum(counts) > x.shape[-2]:
+                raise ValueError(
+                    f"node_type_counts {counts} must give {t} non-negative row counts that fit the "
+                    f"{x.shape[-2]} rows of the node table"
+                )
+            one = x.ndim == 2  # a single graph runs as a batch of one
+            if one:
+                x, graph = x[None], tuple(a[None] for a in graph)
+            out, alpha = _hgt_layout(params, x, *graph, counts=counts, heads=h, softmax=self.softmax)
+            if one:
+                out, alpha = out[0], alpha[0]
+        else:
+            run = _hgt_batch if x.ndim == 3 else _hgt_single
+            out, alpha = run(params, x, *graph, heads=h, softmax=self.softmax)
         if not self.is_initializing():  # keep init's variables free of sown values (batch-agnostic)
             self.sow("attention", "alpha", alpha)
         return out
