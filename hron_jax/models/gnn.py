@@ -372,7 +372,8 @@ def _hgt_layout(
     """HGTConv on a batch of graphs [B, N, ...] / [B, E] whose node table has a static type layout:
     the first counts[0] rows of every graph are of type 0, the next counts[1] of type 1, and so on;
     rows after them are padding. Returns (out [B, N, F], alpha f32[B, E, H]), the values of
-    `_hgt_batch` (same parameters, same sums in the same order).
+    `_hgt_batch` with the same parameters (the same products and edge sums; on house.xml graphs
+    the forward is bitwise equal, gradients agree to ~4e-7 relative).
 
     A type's rows of the whole batch are one slice, so each per-type linear is one plain matmul and
     each relation transform one matmul per (k | v, head): no permutation into type blocks, no
