@@ -386,15 +386,15 @@ def test_hgt_static_type_layout_drops_nodes_off_their_rows():
     expected["mask"][wrong] = False
     params = jax.tree.map(jnp.asarray, p1)
     sliced = HGTConv(16, heads=2, node_type_counts=counts)
-    out, _ = _hgt_apply(sliced, params, *(bad[k] for k in _GRAPH_KEYS))
-    ref, _ = _hgt_apply(HGTConv(16, heads=2), params, *(expected[k] for k in _GRAPH_KEYS))
+    out, _ = jax.jit(functools.partial(_hgt_apply, sliced))(params, *(bad[k] for k in _GRAPH_KEYS))
+    blocks = jax.jit(functools.partial(_hgt_apply, HGTConv(16, heads=2)))
+    ref, _ = blocks(params, *(expected[k] for k in _GRAPH_KEYS))
     np.testing.assert_allclose(out, ref, atol=TOL, rtol=0)
     assert not np.asarray(out)[[wrong, sum(counts)]].any()
     for counts_bad in ((counts[0], counts[1]), (counts[0], counts[1], len(lay["x"]))):
         with pytest.raises(ValueError, match="node_type_counts"):
-            _hgt_apply(
-                HGTConv(16, heads=2, node_type_counts=counts_bad), params, *(lay[k] for k in _GRAPH_KEYS)
-            )
+            bad_layout = functools.partial(_hgt_apply, HGTConv(16, heads=2, node_type_counts=counts_bad))
+            jax.eval_shape(bad_layout, params, *(lay[k] for k in _GRAPH_KEYS))
 
 
 def test_illegal_relation_triple_is_dropped():
