@@ -415,10 +415,10 @@ def _hgt_layout(
     e = senders.shape[-1]
     graph = jnp.arange(b, dtype=senders.dtype)[:, None]
     row_t = jnp.asarray(row_type)
-    flat_mask = node_mask.reshape(-1)
-    live = edge_mask & flat_mask[graph * n + senders] & flat_mask[graph * n + receivers]
+    flat = lambda a: (graph * n + a).reshape(-1)  # noqa: E731  (a node's row in the batch)
+    live = live_edges(node_mask.reshape(-1), flat(senders), flat(receivers), edge_mask.reshape(-1))
     st, dt = jnp.clip(row_t[senders], 0, t - 1), jnp.clip(row_t[receivers], 0, t - 1)
-    live, rel = _relation_edges(live.reshape(-1), relation.reshape(-1), st.reshape(-1), r, rel_src)
+    live, rel = _relation_edges(live, relation.reshape(-1), st.reshape(-1), r, rel_src)
     count, start = jnp.asarray(counts, senders.dtype), jnp.asarray(starts, senders.dtype)
     # Rows of dead edges are 0: they index nothing outside the tables (their values are masked).
     src = jnp.where(live, (graph * count[st] + senders - start[st]).reshape(-1), 0)
