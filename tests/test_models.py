@@ -268,13 +268,7 @@ def test_hgt_batch_matches_single_graphs_and_differentiates():
     batch = {k: np.stack([gg[k] for gg in graphs]) for k in graphs[0]}
     params = jax.tree.map(jnp.asarray, p1)
 
-    @jax.default_matmul_precision("highest")
-    def apply(p, x, node_type, mask, senders, receivers, edge_type, edge_mask):
-        rel = edge_relations(node_type, senders, receivers, edge_type)
-        out, state = _HGT.apply(
-            {"params": p}, x, node_type, mask, senders, receivers, rel, edge_mask, mutable=["attention"]
-        )
-        return out, state["attention"]["alpha"][0]
+    apply = jax.default_matmul_precision("highest")(functools.partial(_hgt_apply, _HGT))
 
     def loss(p, *a):
         return jnp.sum(jnp.sin(apply(p, *a)[0]))
