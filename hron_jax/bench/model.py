@@ -37,7 +37,7 @@ VARIANTS = ("rgbd", "rgbd_mm", "rgbd_sg", "rgbd_sg_attn", "gcn", "yang")
 def model_inputs(batch: int = 64, scene_path: str = DEFAULT_SCENE, image: int = 32, seed: int = 0):
     """A batch of observations following hron_jax.models' contract: scene graphs of `scene_path`
     from GraphBuilder with every node discovered and every pool object placed in a random slot
-    (house.xml: N=71, E=194), random poses, random RGB-D / map images, random goals."""
+    (house.xml: N=119, E=386, all live), random poses, random RGB-D / map images, random goals."""
     import jax
     import jax.numpy as jnp
 
