@@ -19,6 +19,8 @@
 #                 fuses the test into the min, no candidate tables at all; 21 GB if it does not)
 #       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
 #                 steps, 32x32 camera, 8 minibatches of 8192 (and its compile time)
+#       model     bench model: the main model's forward and fwd+grad at batch 8192 with the HGT
+#                 layers on the sliced static type layout (the default) and on type blocks
 #       train32   bench train: that update as train.py runs it (CUDA graphs on): env steps/s
 #       train128  bench train: the same with the 128x128 camera and 32 minibatches of 2048 (8192
 #                 need 79 GB at 128x128); convolutions as on a GPU by default (ModelConfig.conv auto:
@@ -42,7 +44,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env env-nocull profile train32 train32bf profilebf train128 train128p compile trainpy evalpy trainpy-na env-warp train32w)
+((${#STAGES[@]})) || STAGES=(env env-nocull profile model train32 train32bf profilebf train128 train128p compile trainpy evalpy trainpy-na env-warp train32w)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -74,6 +76,8 @@ main() {
         --backends kernel-nocull --native-envs 1 --steps 10 --repeats 2 ;;
       profile) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 ;;
+      model) step "$(box 120)" python3 -m hron_jax.bench model --variants rgbd_sg_attn --batch 8192 \
+        --reps 10 --hgt-layouts sliced blocks ;;
       train32) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 ;;
       train32bf) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
@@ -91,7 +95,7 @@ main() {
         --compile-cache none ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
         train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;
-      *) echo "unknown stage $s (valid: env env-nocull env-warp profile train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy trainpy-na)" ;;
+      *) echo "unknown stage $s (valid: env env-nocull env-warp profile model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy trainpy-na)" ;;
     esac
   done
 }
