@@ -201,10 +201,13 @@ class NodeFeaturizer(nn.Module):
         # Zero the geometry of dead rows before the Dense: garbage there (even NaN) would
         # otherwise poison the kernel's gradient (0 * NaN) although the output is masked.
         geom = jnp.where(mask[..., None], jnp.concatenate([pos, size], -1), 0.0)
+        # On rows [B N, 6]: the kernel's gradient is then one 2-D dot; over [B, N, 6] XLA:CPU
+        # contracted B and N through a transposed copy of the [B, N, F] gradient (30 ms at B=128).
+        geometry = nn.Dense(self.features, name="geometry")(geom.reshape(-1, geom.shape[-1]))
         h = (
             Embed(self.num_classes, self.features, name="category_embed")(cat)
             + Embed(gt.NUM_NODE_TYPES, self.features, name="type_embed")(nt)
-            + nn.Dense(self.features, name="geometry")(geom)
+            + geometry.reshape(geom.shape[:-1] + (self.features,))
         )
         return jnp.where(mask[..., None], h, 0.0)
 
