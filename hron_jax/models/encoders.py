@@ -230,8 +230,8 @@ class WordVectorNodeFeaturizer(nn.Module):
         if image_code is not None:
             code = jnp.broadcast_to(image_code[..., None, :], wv.shape[:-1] + image_code.shape[-1:])
             wv = jnp.concatenate([wv, code], -1)
-        h = nn.Dense(self.features)(wv)
-        return jnp.where(mask[..., None], h, 0.0)
+        h = nn.Dense(self.features)(wv.reshape(-1, wv.shape[-1]))  # on rows: see NodeFeaturizer
+        return jnp.where(mask[..., None], h.reshape(wv.shape[:-1] + (self.features,)), 0.0)
 
 
 class SceneGraphEncoder(nn.Module):

@@ -612,17 +612,19 @@ class GCNConv(nn.Module):
         kernel = self.param("kernel", nn.initializers.glorot_uniform(), (x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
         kernel, x = kernel.astype(self.dtype), x.astype(self.dtype)
+        # x W on rows [(B N), F_in]: over [B, N, F_in] (vmapped) the kernel's gradient contracted
+        # B and N through a transposed copy of the [B, N, F] gradient on XLA:CPU.
+        hx = (x.reshape(-1, x.shape[-1]) @ kernel).reshape(x.shape[:-1] + (self.features,))
         if x.ndim == 3:  # a batch of graphs: [B, N, F_in], [B, N], [B, E] ...
-            return jax.vmap(_gcn, in_axes=(None, None, 0, 0, 0, 0, 0))(
-                kernel, bias, x, node_mask, senders, receivers, edge_mask
+            return jax.vmap(_gcn, in_axes=(0, None, 0, 0, 0, 0))(
+                hx, bias, node_mask, senders, receivers, edge_mask
             )
-        return _gcn(kernel, bias, x, node_mask, senders, receivers, edge_mask)
+        return _gcn(hx, bias, node_mask, senders, receivers, edge_mask)
 
 
-def _gcn(kernel, bias, x, node_mask, senders, receivers, edge_mask):
-    """GCNConv on one graph (see the class)."""
-    n = x.shape[0]
-    hx = x @ kernel
+def _gcn(hx, bias, node_mask, senders, receivers, edge_mask):
+    """GCNConv on one graph (see the class), from its transformed features hx = x W [N, F]."""
+    n = hx.shape[0]
     live = live_edges(node_mask, senders, receivers, edge_mask) & (senders != receivers)
     w = live.astype(jnp.float32)
     loop = node_mask.astype(jnp.float32)
@@ -634,4 +636,4 @@ def _gcn(kernel, bias, x, node_mask, senders, receivers, edge_mask):
     out = jax.ops.segment_sum(msg, receivers, n)
     out = out + (dis * dis * loop)[:, None] * _f32(hx)
     out = out + bias
-    return jnp.where(node_mask[:, None], out, 0.0).astype(x.dtype)
+    return jnp.where(node_mask[:, None], out, 0.0).astype(hx.dtype)
