@@ -28,7 +28,7 @@ import numpy as np
 from hron_jax import graph_types as gt
 from hron_jax.models import pooling
 from hron_jax.models.config import ModelConfig
-from hron_jax.models.gnn import GCNConv, HGTConv, edge_relations
+from hron_jax.models.gnn import GCNConv, HGTConv, edge_relations, on_rows
 from hron_jax.models.lookup import Embed
 
 # PPO-style orthogonal init (PureJaxRL): sqrt(2) gain for ReLU layers.
@@ -201,13 +201,10 @@ class NodeFeaturizer(nn.Module):
         # Zero the geometry of dead rows before the Dense: garbage there (even NaN) would
         # otherwise poison the kernel's gradient (0 * NaN) although the output is masked.
         geom = jnp.where(mask[..., None], jnp.concatenate([pos, size], -1), 0.0)
-        # On rows [B N, 6]: the kernel's gradient is then one 2-D dot; over [B, N, 6] XLA:CPU
-        # contracted B and N through a transposed copy of the [B, N, F] gradient (30 ms at B=128).
-        geometry = nn.Dense(self.features, name="geometry")(geom.reshape(-1, geom.shape[-1]))
         h = (
             Embed(self.num_classes, self.features, name="category_embed")(cat)
             + Embed(gt.NUM_NODE_TYPES, self.features, name="type_embed")(nt)
-            + geometry.reshape(geom.shape[:-1] + (self.features,))
+            + on_rows(nn.Dense(self.features, name="geometry"), geom)
         )
         return jnp.where(mask[..., None], h, 0.0)
 
@@ -230,8 +227,8 @@ class WordVectorNodeFeaturizer(nn.Module):
         if image_code is not None:
             code = jnp.broadcast_to(image_code[..., None, :], wv.shape[:-1] + image_code.shape[-1:])
             wv = jnp.concatenate([wv, code], -1)
-        h = nn.Dense(self.features)(wv.reshape(-1, wv.shape[-1]))  # on rows: see NodeFeaturizer
-        return jnp.where(mask[..., None], h.reshape(wv.shape[:-1] + (self.features,)), 0.0)
+        h = on_rows(nn.Dense(self.features), wv)
+        return jnp.where(mask[..., None], h, 0.0)
 
 
 class SceneGraphEncoder(nn.Module):

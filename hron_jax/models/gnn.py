@@ -61,6 +61,15 @@ def _dot_f32(a, b):
     return jnp.sum(_f32(a) * _f32(b), axis=-1)
 
 
+def on_rows(f, x):
+    """f, a row-wise linear map [M, K] -> [M, O], applied to x [..., K] as one [M, K] matrix:
+    returns [..., O]. Over [B, N, K] the kernel's gradient contracts B and N, which XLA:CPU fed
+    through a transposed copy of the [B, N, O] gradient (31 ms at B=128, N=119, O=128); on rows
+    it is one 2-D dot. Same values."""
+    y = f(x.reshape(-1, x.shape[-1]))
+    return y.reshape(x.shape[:-1] + y.shape[-1:])
+
+
 def live_edges(node_mask, senders, receivers, edge_mask):
     """bool[E]: edge is live and both endpoints are live."""
     return edge_mask & node_mask[senders] & node_mask[receivers]
@@ -612,9 +621,7 @@ class GCNConv(nn.Module):
         kernel = self.param("kernel", nn.initializers.glorot_uniform(), (x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
         kernel, x = kernel.astype(self.dtype), x.astype(self.dtype)
-        # x W on rows [(B N), F_in]: over [B, N, F_in] (vmapped) the kernel's gradient contracted
-        # B and N through a transposed copy of the [B, N, F] gradient on XLA:CPU.
-        hx = (x.reshape(-1, x.shape[-1]) @ kernel).reshape(x.shape[:-1] + (self.features,))
+        hx = on_rows(lambda rows: rows @ kernel, x)  # x W, not vmapped per graph (on_rows)
         if x.ndim == 3:  # a batch of graphs: [B, N, F_in], [B, N], [B, E] ...
             return jax.vmap(_gcn, in_axes=(0, None, 0, 0, 0, 0))(
                 hx, bias, node_mask, senders, receivers, edge_mask
