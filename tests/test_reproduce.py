@@ -244,7 +244,7 @@ def test_plan_lists_every_cell(R, tmp_path, capsys):
     text = capsys.readouterr().out
     for cell in R.GRID:
         assert cell.name in text
-    assert '--total-steps 20480 --model-option hidden=32' in text  # choice: cpu profile
+    assert '--total-steps 61440 --model-option hidden=32' in text  # choice: cpu profile
     assert (
         'python train.py --task directed --model rgbd --seed 2 --distractors --total-steps 131072 '
         '--no-progress'

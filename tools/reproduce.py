@@ -138,7 +138,7 @@ PROFILES = {
         'exploratory': ['--preset', 'paper'],
     },
     'cpu': {
-        'choice': ['--total-steps', '20480', '--model-option', 'hidden=32'],
+        'choice': ['--total-steps', '61440', '--model-option', 'hidden=32'],
         'directed': ['--total-steps', '131072'],
         'exploratory': ['--total-steps', '32768'],
     },
@@ -301,10 +301,11 @@ def notes(table: int) -> list[str]:
             'same nodes: SG and SG + TD ATTN compute the same function and, from the same seed, train '
             "identically (their rows and curves coincide). (2) Profile `cpu`, not the paper's "
             f'settings: {_what(c)}; the HGT width 32 instead of the release\'s 128 lets '
-            'the 12 runs fit ~30 min on 2 shared cores; at width 128 a 10-update trial of '
+            'the 12 runs fit ~1 h on 2 shared cores; at width 128 a 10-update trial of '
             'the distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed '
             'that has not left chance SR (0.5) by the end of this budget counts as it is; the '
-            'learning curves show when the others jumped.'
+            'learning curves show when the others jumped (2026-12-03, without distractors: one seed '
+            'at ~36,000 env steps, so 20,480, the budget before, left two of three seeds at chance).'
         ]
     if table == 2:
         c = cpu['directed']
