@@ -51,7 +51,7 @@ numeric `max_geom_pairs` = K: per substep MJX keeps the K pairs of smallest boun
 top K: culling never drops a live contact. `SimConfig.collider='capsule'` is the collision model of
 runs before 2026-12-02 (config.json files without the field load as it): no sphere, the capsule
 (radius plus skin) collides against the true boxes, and MJX's JAX physics then misses contacts near
-box edges (README, Physics).
+box edges (docs/benchmarks.md, Physics).
 
 Control scheme: deadbeat velocity plan on implicit velocity servos
 ------------------------------------------------------------------
@@ -289,7 +289,7 @@ def _physics_model(m: mujoco.MjModel, d: mujoco.MjData, blockers, cfg: SimConfig
     touches, and MJX's step costs what the model holds, not what moves: kinematics, velocities and
     inertias of every body, every substep. With the scene's 121 bodies (house.xml) that was half of
     an env step's physics on the CPU, and for a GPU XLA fused MJX's per-body work into kernels over
-    all bodies at once, the largest of which took 7.6 s to compile on its own (README, Physics).
+    all bodies at once, the largest of which took 7.6 s to compile on its own (docs/benchmarks.md, Physics).
     The agent's motion is the same: the same shapes at the same world poses, and the agent's
     contact parameters win every pair (its geoms' priority).
 

@@ -253,7 +253,7 @@ def settings(cfg) -> dict[str, str]:
     if cfg.task != 'choice':
         out['camera'] = f'camera {cfg.env.camera.width}x{cfg.env.camera.height}'
         out['physics'] = 'physics ' + ('MJX-Warp' if cfg.env.sim.physics == 'warp' else 'MJX (JAX)')
-        if cfg.env.sim.collider == 'capsule':  # runs before 2026-12-02 (README, Physics)
+        if cfg.env.sim.collider == 'capsule':  # runs before 2026-12-02 (docs/benchmarks.md, Physics)
             out['physics'] += ', capsule collider'
     if n.use_graph:
         out['graph'] = (
@@ -316,8 +316,9 @@ def notes(table: int) -> list[str]:
             'during training, so these rows show early learning, not converged policies, and not '
             "under the paper's settings; those and the paper's budget are the `paper` profile "
             '(`train.py --preset paper`; commands and measured cost below, when not run). '
-            '(2) The PPO update of the graph models dominates the time on the CPU (README, `python '
-            '-m hron_jax.bench train`); graph-free RGB-D only trains ~3x faster.'
+            '(2) The PPO update of the graph models dominates the time on the CPU '
+            '(docs/benchmarks.md, `python -m hron_jax.bench train`); graph-free RGB-D only trains ~3x '
+            'faster.'
         ]
     if table == 3:
         c = cpu['exploratory']
