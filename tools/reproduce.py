@@ -33,7 +33,7 @@ camera 128x128, per-relation HGT softmax and RLlib PPO, 8 envs x 512 steps, 30 e
 1.5 M env steps per seed; choice: the task default 200 k, the paper states none); 'cpu' = what fits
 a session on the 2-core development machine and is NOT the paper's settings: the task defaults
 (camera 32x32, joint HGT softmax, 64 envs, 4 epochs, lr 2.5e-4 / 3e-4) at a fraction of the budget
-(choice: HGT hidden 32, 20 480 env steps per seed; directed 131 072 = 32 PPO updates, exploratory
+(choice: HGT hidden 32, 61 440 env steps per seed; directed 131 072 = 32 PPO updates, exploratory
 32 768 = 8 updates, i.e. 9 % and 2 % of the paper's 1.5 M). The report reads every run's
 config.json (TrainConfig.from_dict, older flat files included) and states in each row exactly what
 ran: preset, camera, HGT softmax and sizes, PPO, budget. A run dir that exists with fewer env steps
