@@ -46,8 +46,14 @@ from hron_jax.ppo import PPOConfig
 # defaults) and keeps approx_kl moderate. num_steps = 64 with 500-step episodes: GAE bootstraps
 # across rollout ends from the value, which lambda = 0.9 discounts anyway ((0.99*0.9)^64 ~ 6e-4).
 # The choice task is a one-step bandit: rollouts of 4 steps are 4 independent episodes per env,
-# gamma / lambda do not matter; with these defaults the main model reaches SR 1.0 (no distractors)
-# within ~10 k steps (measured: 0.51 / 0.81 / 0.91 / 1.0 after 2.6 / 5.1 / 7.7 / 10.2 k steps).
+# gamma / lambda do not matter. Its lr is the paper's 1e-4 (2026-12-03, main model with
+# distractors, HGT hidden 32, 61,440 env steps): at 3e-4 the policy turned deterministic within
+# ~10-30 k env steps, often before it had solved the task, and 3 of 6 seeds froze at SR 0.75 (one
+# more reached 1.0 and fell back to it): wrong with probability ~1 in exactly one of the four
+# (goal, layout) cases, where the saturated softmax gets no gradient. At 1e-4, 9 of 9 seeds reached
+# 1.0 between ~20 and ~55 k env steps and stayed there. RLlib's adaptive KL penalty (the paper
+# preset's) did not help at 3e-4: its coefficient halves after each update whose KL is below
+# target / 2, which took it from 0.2 to ~0 within the first ~20 updates.
 # ------------------------------------------------------------------------------------------------
 _NAV_PPO = PPOConfig(
     num_envs=64,
@@ -72,7 +78,7 @@ TASK_DEFAULTS: dict[str, dict] = {
             total_timesteps=200_000,
             update_epochs=4,
             num_minibatches=4,
-            lr=3e-4,
+            lr=1e-4,
             gamma=0.99,
             gae_lambda=0.9,
             ent_coef=0.01,

@@ -75,7 +75,7 @@ def write_rows(d: Path, sr: float):
 
 CHOICE_CPU = (
     "preset default (not the paper's settings); HGT hidden 32, 2 heads, 3 layers, joint softmax; "
-    'PPO 64 envs x 4 steps, 4 epochs, minibatch 64, lr 3e-4; 1,024 env steps / seed (the paper '
+    'PPO 64 envs x 4 steps, 4 epochs, minibatch 64, lr 1e-4; 1,024 env steps / seed (the paper '
     'states no budget for this task)'
 )
 
