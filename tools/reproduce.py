@@ -301,7 +301,7 @@ def notes(table: int) -> list[str]:
             'same nodes: SG and SG + TD ATTN compute the same function and, from the same seed, train '
             "identically (their rows and curves coincide). (2) Profile `cpu`, not the paper's "
             f'settings: {_what(c)}; the HGT width 32 instead of the release\'s 128 lets '
-            'the 12 runs fit ~1 h on 2 shared cores; at width 128 a 10-update trial of '
+            'the 12 runs fit ~25 min on 2 shared cores (2026-12-03); at width 128 a 10-update trial of '
             'the distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed '
             'that has not left chance SR (0.5) by the end of this budget counts as it is; the '
             'learning curves show when the others jumped (2026-12-03: between ~15,000 and ~35,000 '
@@ -311,8 +311,9 @@ def notes(table: int) -> list[str]:
             'distractors froze at SR 0.75 (deterministic and wrong in one of the four goal x layout '
             'cases; Table I at 3e-4: SG 0.670 ± 0.287, SG + TD ATTN 0.820 ± 0.157, n=3). At 1e-4 all '
             '9 seeds tried reached 1.0; SG with distractors left chance in 1 of 3 seeds at 3e-4 '
-            '(after ~56,000 env steps) and in none at 1e-4 within this budget, so without attention '
-            'the task is learned later, not never (hron_jax/run_config.py).'
+            '(after ~56,000 env steps) and in none at 1e-4 within this budget; trained to the task '
+            "default's 200,000 env steps at 1e-4, three vmapped SG seeds left it at ~148,000-189,000, "
+            'so without attention the task is learned later, not never (hron_jax/run_config.py).'
         ]
     if table == 2:
         c = cpu['directed']
