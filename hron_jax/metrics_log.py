@@ -3,7 +3,10 @@
     summarize_chunk(metrics {name: f32[S, n]}) -> {name: f64[S]}   one chunk of n updates, S seeds
     log = MetricsLog(run_dir, resume_update)    metrics.jsonl (source of truth), metrics.csv, tb/
     row = log.append(update, summary, wall_time, steps_per_s)      mean / std over seeds + per seed
-    plot_learning_curves({label: rows}, path)    SR and return vs env steps, mean +- std over seeds
+    pooled_curve(rows, keys, min_episodes) -> (env_steps f64[R], {key: f64[S, R]})
+                                                 per seed, episode-weighted over trailing rows
+    curve_rows([rows of each run]) -> [{'env_steps', 'success', 'success_std', ...}]  over all seeds
+    plot_learning_curves({label: curve rows}, path)  SR and return vs env steps, mean +- std
     recent_success(rows, after_update) -> (SR, episodes)   over the rows after an update
 
 A resumed run rewinds the log to the update it resumes from (rows written after that checkpoint
@@ -170,8 +173,74 @@ class MetricsLog:
             self.tb = None
 
 
+# Finished episodes a point of a learning curve rests on, per seed (see pooled_curve).
+CURVE_MIN_EPISODES = 20
+
+
+def pooled_curve(rows: list[dict], keys=('success', 'return'), min_episodes: int = CURVE_MIN_EPISODES):
+    """Learning curve of each seed with every point resting on >= min_episodes finished episodes.
+
+    A row's episode metrics are means over the episodes its chunk finished, and early chunks of a
+    navigation run finish few (500-step episodes that all start together), so a row alone swings
+    between 0 and 1. At each row, per seed, this is the episode-weighted mean of each key over the
+    fewest trailing rows (that row included) holding >= min_episodes of that seed's episodes; NaN
+    until the seed has finished that many. rows: metrics.jsonl rows (with 'per_seed'; rows without
+    it count as one seed). Returns (env_steps f64[R], {key: f64[S, R]}).
+    """
+    steps = np.asarray([r['env_steps'] for r in rows], np.float64)
+
+    def per_seed(r, k):
+        v = (r.get('per_seed') or {}).get(k)
+        v = [r.get(k)] if v is None else v
+        return np.asarray([np.nan if x is None else x for x in v], np.float64)
+
+    episodes = np.nan_to_num(np.stack([per_seed(r, 'episodes') for r in rows], 1)) if rows else None
+    out = {}
+    for k in keys:
+        if not rows:
+            out[k] = np.zeros((1, 0))
+            continue
+        vals = np.stack([per_seed(r, k) for r in rows], 1)  # [S, R]
+        has = (episodes > 0) & np.isfinite(vals)
+        ep = np.where(has, episodes, 0.0)
+        # Sums over rows j..i are c[i + 1] - c[j] of the cumulative sums (leading 0).
+        c_ep = np.concatenate([np.zeros((len(ep), 1)), np.cumsum(ep, 1)], 1)
+        c_val = np.concatenate([np.zeros((len(ep), 1)), np.cumsum(np.where(has, vals, 0.0) * ep, 1)], 1)
+        pooled = np.full(vals.shape, np.nan)
+        for s in range(len(ep)):
+            for i in range(vals.shape[1]):
+                # the latest start j whose window j..i holds enough episodes (c_ep is nondecreasing)
+                j = np.searchsorted(c_ep[s], c_ep[s, i + 1] - min_episodes, side='right') - 1
+                if j >= 0 and c_ep[s, i + 1] - c_ep[s, j] >= min_episodes:
+                    pooled[s, i] = (c_val[s, i + 1] - c_val[s, j]) / (c_ep[s, i + 1] - c_ep[s, j])
+        out[k] = pooled
+    return steps, out
+
+
+def curve_rows(runs: list[list[dict]], keys=('success', 'return'), min_episodes: int = CURVE_MIN_EPISODES):
+    """The learning curve over every seed of some runs (their metrics.jsonl rows): per env-step
+    value, the mean and sample std (ddof=1; None for one seed) over the seeds' pooled_curve points
+    there ({'env_steps', key, key + '_std'}; None where no seed has a point yet)."""
+    at: dict[int, dict[str, list[float]]] = {}
+    for rows in runs:
+        steps, pooled = pooled_curve(rows, keys, min_episodes)
+        for i, step in enumerate(steps):
+            point = at.setdefault(int(step), {k: [] for k in keys})
+            for k in keys:
+                point[k] += [float(v) for v in pooled[k][:, i] if np.isfinite(v)]
+    out = []
+    for step in sorted(at):
+        row = {'env_steps': step}
+        for k, v in at[step].items():
+            row[k] = float(np.mean(v)) if v else None
+            row[k + '_std'] = float(np.std(v, ddof=1)) if len(v) > 1 else None
+        out.append(row)
+    return out
+
+
 def plot_learning_curves(runs: dict[str, list[dict]], path, title: str = '') -> None:
-    """SR and return vs env steps (per seed), mean +- std over seeds, one line per run label."""
+    """SR and return vs env steps, mean +- std over seeds, one line per label: runs {label: rows
+    of curve_rows}, so each point rests on >= CURVE_MIN_EPISODES finished episodes per seed."""
     import matplotlib
 
     matplotlib.use('Agg')

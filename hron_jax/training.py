@@ -43,7 +43,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hron_jax.errors import NonFiniteError, UsageError
-from hron_jax.metrics_log import MetricsLog, plot_learning_curves, recent_success, summarize_chunk
+from hron_jax.metrics_log import MetricsLog, curve_rows, plot_learning_curves, recent_success, summarize_chunk
 from hron_jax.multihost import is_main, sync
 from hron_jax.run_config import RESUMABLE, TrainConfig, build_env, build_network, config_diff, run_label
 from hron_jax.run_dir import checkpoint_manager, load_config, restore_runner, save_config, storable
@@ -302,7 +302,7 @@ class Trainer:
                 f'{c.task}{" + distractors" if c.distractors else ""}: {run_label(c)}, {c.num_seeds} seed(s)'
             )
             plot_learning_curves(
-                {run_label(c): self.metrics.rows}, self.run_dir / 'learning_curve.png', title
+                {run_label(c): curve_rows([self.metrics.rows])}, self.run_dir / 'learning_curve.png', title
             )
 
     # -- training -------------------------------------------------------------------------------

@@ -759,3 +759,34 @@ def test_tune_malloc_applies_on_glibc_cpu_only(monkeypatch):
     assert tune_malloc() is False
     monkeypatch.setenv('JAX_PLATFORMS', 'cpu')
     assert tune_malloc() is True
+
+
+def test_learning_curve_points_pool_episodes_per_seed():
+    """Each curve point is the episode-weighted mean over the fewest trailing chunks holding
+    >= min_episodes of that seed's episodes (worked by hand); std is over seeds (ddof=1)."""
+    from hron_jax.metrics_log import curve_rows, pooled_curve
+
+    def row(step, episodes, success):
+        return {'env_steps': step, 'per_seed': {'episodes': episodes, 'success': success, 'return': success}}
+
+    rows = [
+        row(100, [0, 3], [None, 1.0]),
+        row(200, [2, 1], [0.5, 0.0]),
+        row(300, [3, 4], [1.0, 0.25]),
+        row(400, [0, 0], [None, None]),
+    ]
+    steps, pooled = pooled_curve(rows, ('success',), min_episodes=4)
+    np.testing.assert_array_equal(steps, [100, 200, 300, 400])
+    # seed 0: 2 episodes by 200; chunks 200-300 hold 5: (2 x 0.5 + 3 x 1.0) / 5; 400 adds none.
+    # seed 1: chunks 100-200 hold 4: (3 x 1 + 1 x 0) / 4; from 300 on, chunk 300 alone holds 4.
+    np.testing.assert_allclose(pooled['success'], [[np.nan, np.nan, 0.8, 0.8], [np.nan, 0.75, 0.25, 0.25]])
+    curve = curve_rows([rows], ('success',), min_episodes=4)
+    assert [r['success'] for r in curve[:2]] == [None, 0.75]
+    assert curve[1]['success_std'] is None  # one seed has a point there
+    assert curve[2]['success'] == pytest.approx(0.525)
+    assert curve[2]['success_std'] == pytest.approx(0.55 / np.sqrt(2))
+    # A second run (rows without per_seed count as one seed) joins the seeds at the steps it has.
+    other = [{'env_steps': 300, 'episodes': 6, 'success': 0.5}]
+    joined = {r['env_steps']: r for r in curve_rows([rows, other], ('success',), min_episodes=4)}
+    assert joined[300]['success'] == pytest.approx((0.8 + 0.25 + 0.5) / 3)
+    assert joined[400]['success'] == pytest.approx(0.525)

@@ -611,22 +611,6 @@ def config_text(f: dict) -> str:
     )
 
 
-def curve_rows(run_dirs: list[Path], key: str = 'success') -> list[dict]:
-    """Learning curve over seeds: per env-step row, mean / sample std (ddof=1; None for one seed)
-    over the runs' per-chunk means (rows of hron_jax.metrics_log's plot_learning_curves)."""
-    per_run = [{r['env_steps']: r for r in _rows(d)} for d in run_dirs]
-    steps = sorted(set().union(*[set(p) for p in per_run])) if per_run else []
-    out = []
-    for s in steps:
-        row = {'env_steps': s}
-        for k in (key, 'return'):
-            vals = [v for p in per_run if s in p for v in ([p[s][k]] if p[s].get(k) is not None else [])]
-            row[k] = float(np.mean(vals)) if vals else None
-            row[k + '_std'] = float(np.std(vals, ddof=1)) if len(vals) > 1 else None
-        out.append(row)
-    return out
-
-
 # ------------------------------------------------------------------------------------------------
 # Report
 # ------------------------------------------------------------------------------------------------
@@ -724,14 +708,14 @@ ROUGH = 'a rough figure'
 
 
 def plot_curves(runs: Path, cells: list[Cell], path: Path, title: str) -> bool:
-    from hron_jax.metrics_log import plot_learning_curves
+    from hron_jax.metrics_log import curve_rows, plot_learning_curves
 
     curves = {}
     for c in cells:
         dirs = cell_runs(runs, c)
         if dirs and any(_rows(d) for d in dirs):
             lab = c.label + (' + distractors' if c.distractors else '')
-            curves[f'{lab} ({len(dirs)} seeds)'] = curve_rows(dirs)
+            curves[f'{lab} ({sum(map(num_seeds_of, dirs))} seeds)'] = curve_rows([_rows(d) for d in dirs])
     if not curves:
         return False
     path.parent.mkdir(parents=True, exist_ok=True)
