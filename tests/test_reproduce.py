@@ -296,6 +296,7 @@ def test_a_shorter_run_is_resumed_to_the_profile_budget(R, tmp_path, monkeypatch
     d = runs / cell.name / 's0'
     # 1,024 env steps at the cpu profile's settings, evaluated
     fake_run(d, 0, 0.5, 0.25, distractors=False, task='exploratory', model_option=[])
+    (d / 'checkpoints').mkdir()
     stale = R.held_out_dir(d, R.HELD_OUT[0])
     fake_eval(stale, 0.0, 0.0)
     calls = []
@@ -314,6 +315,50 @@ def test_a_shorter_run_is_resumed_to_the_profile_budget(R, tmp_path, monkeypatch
     (d / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
     R.run_cell_seed(cell, 0, runs, 'cpu', 20)
     assert calls == []
+
+
+def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_checkout(
+    R, tmp_path, monkeypatch
+):
+    runs, out = tmp_path / 'runs', tmp_path / 'docs' / 'reproduction.md'
+    for seed, sr in enumerate((1.0, 0.9)):
+        d = runs / 'choice_rgbd_sg_attn_dist' / f's{seed}'
+        fake_run(d, seed, sr, sr)
+        (d / 'checkpoints' / '16').mkdir(parents=True)
+        (d / 'checkpoints' / '16' / 'eval.json').write_text('{}')  # inside checkpoints: not archived
+        (d / 'tb').mkdir()
+    (runs / '_reference').mkdir()
+    fake_eval(runs / '_reference' / 'random_house', 0.1, 0.05)
+    assert R.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
+    archive = tmp_path / 'docs' / 'reproduction' / 'runs'
+    files = sorted(p.relative_to(archive).as_posix() for p in archive.rglob('*') if p.is_file())
+    assert files == sorted(
+        [
+            '_reference/random_house/eval.json',
+            *[
+                f'choice_rgbd_sg_attn_dist/s{s}/{f}'
+                for s in (0, 1)
+                for f in R.ARCHIVED[:3] + ('eval_trained/eval.json',)
+            ],
+        ]
+    )
+    table = [l for l in out.read_text().splitlines() if l.startswith('| yes | SG + TD ATTN |')]
+    # A fresh checkout (no runs/) writes the same rows from the archive alone ...
+    fresh = tmp_path / 'fresh_runs'
+    assert R.main(['--from-runs', '--runs', str(fresh), '--out', str(out)]) == 0
+    assert [l for l in out.read_text().splitlines() if l.startswith('| yes | SG + TD ATTN |')] == table
+    assert (fresh / 'choice_rgbd_sg_attn_dist' / 's1' / 'eval_trained' / 'eval.json').is_file()
+    # ... and the runner counts the restored runs as done: nothing is retrained.
+    cell = next(c for c in R.GRID if c.name == 'choice_rgbd_sg_attn_dist')
+    calls = []
+    monkeypatch.setattr(R, 'run_logged', lambda argv, log: calls.append(argv) or 5.0)
+    monkeypatch.setattr(R, 'profile_steps', lambda profile, task: 1024)
+    R.run_cell_seed(cell, 1, fresh, 'cpu', 50)
+    assert calls == []
+    # A restored run short of the budget cannot be resumed (no checkpoints): the error says so.
+    monkeypatch.setattr(R, 'profile_steps', lambda profile, task: 4096)
+    with pytest.raises(SystemExit, match='no checkpoints to resume'):
+        R.run_cell_seed(cell, 1, fresh, 'cpu', 50)
 
 
 def test_probe_runs_the_paper_profile(R, tmp_path, monkeypatch):

@@ -8,7 +8,10 @@
 #   reproduction.md   the report (tools/reproduce.py --from-runs) of the runs made here
 #   runs.tgz          the runs' small files (config.json, metrics.jsonl, eval.json, eval.md, repro.json,
 #                     logs; no checkpoints): here `mkdir -p runs/repro_gpu && tar xzf runs.tgz -C
-#                     runs/repro_gpu`, then `tools/reproduce.py --from-runs --runs runs/repro_gpu`
+#                     runs/repro_gpu`, then `tools/reproduce.py --from-runs --runs runs/repro_gpu
+#                     --out docs/reproduction_gpu.md` (a report, and its runs' archive, of their own:
+#                     docs/reproduction.md's archived runs would be restored into runs/repro_gpu and
+#                     mixed with them in the same cells)
 #
 #   bash tools/gpu_tables.sh [TABLES] [SECONDS] [TOTAL_STEPS] [CELLS]
 #     TABLES       tables to run, e.g. "2" or "2 3" (default 2)

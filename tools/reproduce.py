@@ -18,6 +18,12 @@ persistent XLA cache makes seeds 1 and 2 skip compilation), and a single-seed ru
 construction identical to seed i of a multi-seed one (hron_jax.training). --from-runs reads any
 run dir layout it finds under RUNS/<cell>/ (a multi-seed run counts with all its seeds).
 
+Archive: the report at OUT keeps its runs' small files (config, metrics, evaluations; ARCHIVED)
+in git at <OUT's dir>/reproduction/runs. Every call (but --plan / --probe) first restores the
+archived runs RUNS lacks, which count as done, and the report's writer saves every run of RUNS
+back: a fresh checkout (runs/ is not in git) regenerates the report and adds seeds to it without
+retraining what is archived.
+
 In-process profiles ('gpu', 'tiny'; run_cells_in_process): one process trains every cell as ONE
 run RUNS/<cell>/s0x<seeds> with the seeds vmapped (`train.py --num-seeds N`; hron_jax.training
 caches compiled programs in-process per program-relevant config) and evaluates it with eval.py's
@@ -480,6 +486,55 @@ def eval_json(run_dir: Path) -> Path | None:
     return None
 
 
+# The files of a run that the report reads (no checkpoints, TensorBoard or figures): the report's
+# runs keep them in git beside it, so a fresh checkout (no runs/) regenerates the report and adds
+# seeds to it. Units are RUNS/<cell>/<run> (and _reference/<policy_house>, _probe/<cell>).
+ARCHIVED = ('config.json', 'metrics.jsonl', 'repro.json', 'attention_summary.json', 'eval.json', 'eval.md')
+NOT_ARCHIVED_DIRS = ('checkpoints', 'corrupt_checkpoints', 'tb')
+
+
+def archive_of(out: Path) -> Path:
+    """Where the runs of the report at `out` are archived: <out's dir>/reproduction/runs."""
+    return Path(out).parent / 'reproduction' / 'runs'
+
+
+def _units(root: Path) -> list[Path]:
+    return sorted(d for d in Path(root).glob('*/*') if d.is_dir()) if Path(root).is_dir() else []
+
+
+def restore_runs(archive: Path, runs: Path) -> list[str]:
+    """Copy every archived run that RUNS does not have into RUNS; returns their names. A restored
+    run has no checkpoints: it is finished and evaluated, so the runner skips it."""
+    restored = []
+    for unit in _units(archive):
+        rel = unit.relative_to(archive)
+        if not (runs / rel).exists():
+            shutil.copytree(unit, runs / rel)
+            restored.append(rel.as_posix())
+    return restored
+
+
+def save_runs(runs: Path, archive: Path) -> None:
+    """Replace the archive's copy of every run in RUNS by the run's ARCHIVED files (archived runs
+    that RUNS lacks stay: delete them there to drop them from the report)."""
+    for unit in _units(runs):
+        files = [
+            f
+            for f in unit.rglob('*')
+            if f.name in ARCHIVED
+            and f.is_file()
+            and not set(f.relative_to(unit).parts[:-1]) & set(NOT_ARCHIVED_DIRS)
+        ]
+        if not files:
+            continue
+        dest = archive / unit.relative_to(runs)
+        shutil.rmtree(dest, ignore_errors=True)
+        for f in files:
+            target = dest / f.relative_to(unit)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f, target)
+
+
 # ------------------------------------------------------------------------------------------------
 # Machine and process helpers
 # ------------------------------------------------------------------------------------------------
@@ -808,6 +863,9 @@ def attention_figures(runs: Path, figdir: Path, episodes: int = 8, max_steps: in
         if eval_json(run_dir) is None:
             print(f'attention: {name} has no evaluated seed 0; skipped', flush=True)
             continue
+        if not (run_dir / 'checkpoints').is_dir():
+            print(f'attention: {run_dir} has no checkpoints (an archived run); kept as is', flush=True)
+            continue
         t = time.perf_counter()
         run = A.load_run(run_dir)
         recs = {
@@ -933,6 +991,7 @@ def table_comparison(table: int, done: list) -> list[str]:
 
 
 def write_report(runs: Path, out: Path, seeds: int) -> str:
+    """Write the report of the runs under RUNS to `out` and archive their files (save_runs)."""
     figdir = out.parent / 'reproduction'
     lines = [
         '# Reproduction of Tables I-III',
@@ -1082,10 +1141,18 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
         'python tools/reproduce.py --from-runs            # this report from existing runs',
         '```',
         '',
+        f'The runs behind this report are archived in `{_rel(archive_of(out))}` (their config, '
+        'metrics and evaluation files; no checkpoints). Every call of this tool first copies the '
+        'archived runs RUNS lacks into RUNS, where the runner counts them as done, and after writing '
+        'the report saves every run of RUNS there: a fresh checkout regenerates this report, and adds '
+        'seeds to it, without retraining what is archived. A report of other runs goes to another '
+        '`--out` (its archive is beside it).',
+        '',
     ]
     text = '\n'.join(lines)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
+    save_runs(runs, archive_of(out))
     return text
 
 
@@ -1121,6 +1188,11 @@ def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int
     if eval_json(out) is not None and trained >= budget:
         print(f'{cell.name} s{seed}: done already', flush=True)
         return
+    if trained and not (out / 'checkpoints').is_dir():
+        raise SystemExit(
+            f'{out}: trained {trained:,} of {budget:,} env steps but has no checkpoints to resume '
+            f'from (restored from the archive?); delete it (and its copy in the archive) to retrain it'
+        )
     out.parent.mkdir(parents=True, exist_ok=True)
     mach = machine()
     targv = train_argv(cell, seed, out, profile)
@@ -1519,6 +1591,10 @@ def main(argv=None) -> int:
     if a.seeds is None:
         a.seeds = profile_config(a.profile, _main_cell('choice')).num_seeds if in_process else 3
     cells = [c for c in GRID if c.table in a.tables and (not a.cells or re.search(a.cells, c.name))]
+    if not (a.plan or a.probe):  # both only read RUNS (the probe writes its own short runs)
+        restored = restore_runs(archive_of(out), runs)
+        if restored:
+            print(f'restored {len(restored)} archived runs into {runs} (from {_rel(archive_of(out))})')
     if a.probe:
         by_name = {c.name: c for c in GRID}
         for name in a.probe:
