@@ -1606,7 +1606,8 @@ def main(argv=None) -> int:
         print(f'profile {a.profile}: {PROFILE_TEXT[a.profile]}')
         total = 0.0
         for c in cells:
-            n_done = sum(num_seeds_of(d) for d in cell_runs(runs, c) if eval_json(d) is not None)
+            done = {d.name: d for root in (archive_of(out), runs) for d in cell_runs(root, c) if eval_json(d)}
+            n_done = sum(map(num_seeds_of, done.values()))
             prof = a.profile if PROFILES[a.profile][c.task] is not None else 'paper'
             est, sec = estimate(c, runs, a.seeds, prof)
             total += sec or 0.0
