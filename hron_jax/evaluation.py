@@ -133,15 +133,16 @@ def evaluate(
 
 
 def summarize(result: dict) -> dict:
-    """SR / SPL (and episode length) statistics: mean over all episodes, std over seeds of the
-    per-seed means, std over all episodes, per-seed means."""
+    """SR / SPL (and episode length) statistics: mean over all episodes, sample std (ddof=1, as
+    tools/reproduce.py's report) over seeds of the per-seed means (0 for one seed), std over all
+    episodes, per-seed means."""
     out = {}
     for k in ('success', 'spl', 'episode_length'):
         v = np.asarray(result[k], np.float64)  # [S, E]
         per_seed = v.mean(1)
         out[k] = {
             'mean': float(v.mean()),
-            'std_seeds': float(per_seed.std()),
+            'std_seeds': float(per_seed.std(ddof=1)) if len(per_seed) > 1 else 0.0,
             'std_episodes': float(v.std()),
             'per_seed': [float(x) for x in per_seed],
         }
@@ -160,7 +161,9 @@ def markdown_table(rows: list[dict]) -> str:
     for r in rows:
         s = r['summary']
         spread = 'std_seeds' if s['seeds'] > 1 else 'std_episodes'
-        notes.add('over seeds (std of the per-seed means)' if s['seeds'] > 1 else 'over episodes')
+        notes.add(
+            'over seeds (sample std, ddof=1, of the per-seed means)' if s['seeds'] > 1 else 'over episodes'
+        )
         cell = lambda k: f"{s[k]['mean']:.3f} ± {s[k][spread]:.3f}"
         lines.append(
             f"| {r['task']} | {'yes' if r['distractors'] else 'no'} | {r['model']} | "

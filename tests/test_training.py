@@ -574,6 +574,29 @@ def test_progress_sr_waits_until_every_env_can_have_ended_an_episode():
 
 
 # --- eval ----------------------------------------------------------------------------------------
+def test_eval_summary_spread_is_the_sample_std_over_seeds():
+    """eval.md's ± over seeds is the report's: sample std (ddof=1) of the per-seed means."""
+    success = np.array([[1, 1, 0, 0], [1, 1, 1, 1], [0, 0, 0, 1]], np.float64)  # per seed 0.5, 1, 0.25
+    s = evaluation.summarize(
+        {'success': success, 'spl': success / 2, 'episode_length': success, 'finished': success >= 0}
+    )
+    assert s['success']['per_seed'] == [0.5, 1.0, 0.25]
+    assert s['success']['std_seeds'] == pytest.approx(0.381881, abs=1e-6)  # ddof=0 would be 0.311805
+    table = evaluation.markdown_table(
+        [dict(task='choice', distractors=False, model='SG', policy='trained', mode='sampled', summary=s)]
+    )
+    assert '| 0.583 ± 0.382 | 0.292 ± 0.191 |' in table and 'ddof=1' in table
+    one = evaluation.summarize(
+        {
+            k: v[:1]
+            for k, v in dict(
+                success=success, spl=success, episode_length=success, finished=success >= 0
+            ).items()
+        }
+    )
+    assert one['success']['std_seeds'] == 0.0
+
+
 def test_eval_writes_table(reference, tmp_path, xla_cache):
     _, ref_dir, _ = reference
     out = tmp_path / 'eval'
