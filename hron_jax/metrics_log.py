@@ -188,18 +188,17 @@ def pooled_curve(rows: list[dict], keys=('success', 'return'), min_episodes: int
     it count as one seed). Returns (env_steps f64[R], {key: f64[S, R]}).
     """
     steps = np.asarray([r['env_steps'] for r in rows], np.float64)
+    if not rows:
+        return steps, {k: np.zeros((1, 0)) for k in keys}
 
     def per_seed(r, k):
         v = (r.get('per_seed') or {}).get(k)
         v = [r.get(k)] if v is None else v
         return np.asarray([np.nan if x is None else x for x in v], np.float64)
 
-    episodes = np.nan_to_num(np.stack([per_seed(r, 'episodes') for r in rows], 1)) if rows else None
+    episodes = np.nan_to_num(np.stack([per_seed(r, 'episodes') for r in rows], 1))  # [S, R]
     out = {}
     for k in keys:
-        if not rows:
-            out[k] = np.zeros((1, 0))
-            continue
         vals = np.stack([per_seed(r, k) for r in rows], 1)  # [S, R]
         has = (episodes > 0) & np.isfinite(vals)
         ep = np.where(has, episodes, 0.0)
@@ -207,12 +206,12 @@ def pooled_curve(rows: list[dict], keys=('success', 'return'), min_episodes: int
         c_ep = np.concatenate([np.zeros((len(ep), 1)), np.cumsum(ep, 1)], 1)
         c_val = np.concatenate([np.zeros((len(ep), 1)), np.cumsum(np.where(has, vals, 0.0) * ep, 1)], 1)
         pooled = np.full(vals.shape, np.nan)
-        for s in range(len(ep)):
-            for i in range(vals.shape[1]):
-                # the latest start j whose window j..i holds enough episodes (c_ep is nondecreasing)
-                j = np.searchsorted(c_ep[s], c_ep[s, i + 1] - min_episodes, side='right') - 1
-                if j >= 0 and c_ep[s, i + 1] - c_ep[s, j] >= min_episodes:
-                    pooled[s, i] = (c_val[s, i + 1] - c_val[s, j]) / (c_ep[s, i + 1] - c_ep[s, j])
+        for s, (ce, cv) in enumerate(zip(c_ep, c_val)):
+            # The latest start j of each window j..i holding >= min_episodes (ce is nondecreasing);
+            # -1 where even rows 0..i hold fewer.
+            j = np.searchsorted(ce, ce[1:] - min_episodes, side='right') - 1
+            ok = j >= 0
+            pooled[s, ok] = (cv[1:][ok] - cv[j[ok]]) / (ce[1:][ok] - ce[j[ok]])
         out[k] = pooled
     return steps, out
 
