@@ -318,11 +318,12 @@ def test_a_shorter_run_is_resumed_to_the_profile_budget(R, tmp_path, monkeypatch
 
 
 def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_checkout(
-    R, tmp_path, monkeypatch
+    R, tmp_path, monkeypatch, capsys
 ):
     runs, out = tmp_path / 'runs', tmp_path / 'docs' / 'reproduction.md'
+    cell = next(c for c in R.GRID if c.name == 'choice_rgbd_sg_attn_dist')
     for seed, sr in enumerate((1.0, 0.9)):
-        d = runs / 'choice_rgbd_sg_attn_dist' / f's{seed}'
+        d = runs / cell.name / f's{seed}'
         fake_run(d, seed, sr, sr)
         (d / 'checkpoints' / '16').mkdir(parents=True)
         (d / 'checkpoints' / '16' / 'eval.json').write_text('{}')  # inside checkpoints: not archived
@@ -348,8 +349,14 @@ def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_chec
     assert R.main(['--from-runs', '--runs', str(fresh), '--out', str(out)]) == 0
     assert [l for l in out.read_text().splitlines() if l.startswith('| yes | SG + TD ATTN |')] == table
     assert (fresh / 'choice_rgbd_sg_attn_dist' / 's1' / 'eval_trained' / 'eval.json').is_file()
+    # --plan reads the archive without restoring it: 2 of 3 seeds done, the cost of the third from their rate.
+    planned = tmp_path / 'planned_runs'
+    assert R.main(['--plan', '--runs', str(planned), '--out', str(out), '--tables', '1']) == 0
+    line = next(l for l in capsys.readouterr().out.splitlines() if l.split()[2:3] == [cell.name])
+    # the fake runs log 128 env steps/s; the cpu profile trains choice 61,440 steps per seed: 480 s
+    assert line.endswith('2/3 seeds evaluated; 1 to train: 128 env steps/s (its runs) -> 8.0 min'), line
+    assert not planned.exists()
     # ... and the runner counts the restored runs as done: nothing is retrained.
-    cell = next(c for c in R.GRID if c.name == 'choice_rgbd_sg_attn_dist')
     calls = []
     monkeypatch.setattr(R, 'run_logged', lambda argv, log: calls.append(argv) or 5.0)
     monkeypatch.setattr(R, 'profile_steps', lambda profile, task: 1024)

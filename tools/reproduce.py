@@ -701,9 +701,12 @@ def _fmt_time(s):
     return f'{s / 3600:.1f} h' if s >= 3600 else (f'{s / 60:.1f} min' if s >= 60 else f'{s:.0f} s')
 
 
-def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, float | None]:
-    """(text, seconds): training cost of a cell from measured env steps/s, from the first source
-    that has a measurement: its own runs, its --probe, then (flagged as a proxy) the runs and the
+def estimate(
+    cell: Cell, runs: Path, seeds: int, profile: str, archive: Path | None = None
+) -> tuple[str, float | None]:
+    """(text, seconds): training cost of `seeds` seeds of a cell from measured env steps/s, from the
+    first source that has a measurement: its own runs (in RUNS, else in `archive`, which --plan reads
+    without restoring it), its --probe, then (flagged as a proxy) the runs and the
     probe of the main model on the same task (closest distractor / premap setting first), then the
     exploratory main model's probe (the PPO update of the graph model dominates either way)."""
     mains = sorted(
@@ -722,7 +725,10 @@ def estimate(cell: Cell, runs: Path, seeds: int, profile: str) -> tuple[str, flo
     rate = src = None
     for c, kind, what in sources:
         probe = runs / '_probe' / c.name
-        dirs = cell_runs(runs, c) if kind == 'runs' else [probe] * (probe / 'config.json').is_file()
+        if kind == 'runs':
+            dirs = cell_runs(runs, c) or (cell_runs(archive, c) if archive else [])
+        else:
+            dirs = [probe] * (probe / 'config.json').is_file()
         rate, src = steps_per_second(dirs), what
         if rate is not None:
             side = probe / 'repro.json'
@@ -1591,7 +1597,7 @@ def main(argv=None) -> int:
     if a.seeds is None:
         a.seeds = profile_config(a.profile, _main_cell('choice')).num_seeds if in_process else 3
     cells = [c for c in GRID if c.table in a.tables and (not a.cells or re.search(a.cells, c.name))]
-    if not (a.plan or a.probe):  # both only read RUNS (the probe writes its own short runs)
+    if not (a.plan or a.probe):  # --plan reads the archive where it is; the probe writes its own short runs
         restored = restore_runs(archive_of(out), runs)
         if restored:
             print(f'restored {len(restored)} archived runs into {runs} (from {_rel(archive_of(out))})')
@@ -1609,9 +1615,11 @@ def main(argv=None) -> int:
             done = {d.name: d for root in (archive_of(out), runs) for d in cell_runs(root, c) if eval_json(d)}
             n_done = sum(map(num_seeds_of, done.values()))
             prof = a.profile if PROFILES[a.profile][c.task] is not None else 'paper'
-            est, sec = estimate(c, runs, a.seeds, prof)
+            to_train = max(a.seeds - n_done, 0)
+            est, sec = estimate(c, runs, to_train, prof, archive_of(out))
             total += sec or 0.0
-            print(f'[Table {c.table}] {c.name:34s} {n_done}/{a.seeds} seeds evaluated; {est}')
+            todo = f'{to_train} to train: {est}' if to_train else 'nothing to train'
+            print(f'[Table {c.table}] {c.name:34s} {n_done}/{a.seeds} seeds evaluated; {todo}')
             if in_process:  # one run, the seeds vmapped; this process runs what these commands do
                 cfg = in_process_config(prof, c, a.seeds, a.total_steps)
                 print(f'    settings ({prof}): {describe_config(cfg)}')
@@ -1633,8 +1641,8 @@ def main(argv=None) -> int:
                     + shlex.join(eval_argv(d, a.episodes or EPISODES[c.task]))
                 )
         print(
-            f'estimated training time of the measured cells: {_fmt_time(total)} (compilation and '
-            'evaluation excluded)'
+            f'estimated training time of the seeds left to train in the measured cells: {_fmt_time(total)} '
+            '(compilation and evaluation excluded)'
         )
         return 0
     if a.attention:
