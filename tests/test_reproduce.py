@@ -4,23 +4,50 @@ import importlib.util
 import json
 import os
 import re
-import sys
 from pathlib import Path
 
 import pytest
 
 from hron_jax.cli import config_from_args
 from hron_jax.paths import REPO_ROOT
+from hron_jax.reproduction import runner
+from hron_jax.reproduction.grid import (
+    ATTENTION_CELLS,
+    GRID,
+    HELD_OUT,
+    TRAIN_HOUSE,
+    ordering_disagreements,
+    ordering_sentence,
+    paper_diff,
+    profile_config,
+    profile_steps,
+    train_argv,
+)
+from hron_jax.reproduction.report import (
+    _ours,
+    attention_section,
+    config_text,
+    generalisation_section,
+    table_comparison,
+)
+from hron_jax.reproduction.runs import (
+    ARCHIVED,
+    collect_cell,
+    eval_json,
+    held_out_dir,
+    mean_std,
+    reference_dir,
+)
 from hron_jax.run_config import run_label
 
 ROOT = Path(REPO_ROOT)
 
 
 @pytest.fixture(scope='module')
-def R():
+def cli():
+    """tools/reproduce.py, the command line (a script, not a module): build_parser and main."""
     spec = importlib.util.spec_from_file_location('reproduce', ROOT / 'tools' / 'reproduce.py')
     mod = importlib.util.module_from_spec(spec)
-    sys.modules['reproduce'] = mod  # dataclasses resolve annotations through sys.modules
     spec.loader.exec_module(mod)
     return mod
 
@@ -80,12 +107,12 @@ CHOICE_CPU = (
 )
 
 
-def test_report_from_runs(R, tmp_path):
+def test_report_from_runs(cli, tmp_path):
     runs = tmp_path / 'runs'
     for seed, sr in enumerate((1.0, 0.9, 0.8)):
         fake_run(runs / 'choice_rgbd_sg_attn_dist' / f's{seed}', seed, sr, sr)
     out = tmp_path / 'docs' / 'reproduction.md'
-    assert R.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
+    assert cli.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
     text = out.read_text()
     row = next(l for l in text.splitlines() if l.startswith('| yes | SG + TD ATTN |'))
     # Mean over seeds 0.9; sample std (ddof=1) of the per-seed means 0.1 (ddof=0 would be 0.082).
@@ -106,7 +133,7 @@ def test_report_from_runs(R, tmp_path):
     assert "Profile `cpu`, not the paper's settings" in text
 
 
-def test_one_seed_has_no_spread_and_old_config_files_are_read(R, tmp_path):
+def test_one_seed_has_no_spread_and_old_config_files_are_read(tmp_path):
     """A pre-tree (flat) config.json, as the runs of 2026-11-23 wrote it, is read and described."""
     runs = tmp_path / 'runs'
     d = runs / 'directed_rgbd_sg_dist' / 's0'
@@ -148,30 +175,30 @@ def test_one_seed_has_no_spread_and_old_config_files_are_read(R, tmp_path):
     (d / 'config.json').write_text(json.dumps({'config': old, 'meta': {}}))
     write_rows(d, 0.55)
     fake_eval(d / 'eval_trained', 0.55, 0.174)
-    cell = next(c for c in R.GRID if c.name == 'directed_rgbd_sg_dist')
-    f = R.collect_cell(runs, cell)
-    assert R._ours(f['sr']) == '0.550 (n=1, no spread)'
-    assert R.config_text(f) == (
+    cell = next(c for c in GRID if c.name == 'directed_rgbd_sg_dist')
+    f = collect_cell(runs, cell)
+    assert _ours(f['sr']) == '0.550 (n=1, no spread)'
+    assert config_text(f) == (
         "preset default (not the paper's settings); camera 32x32; physics MJX (JAX); HGT hidden 128, 2 "
         'heads, 3 layers, joint softmax; PPO 64 envs x 64 steps, 4 epochs, minibatch 128, lr 2.5e-4; '
         "131,072 env steps / seed (9 % of the paper's 1.5 M)"
     )
 
 
-def test_mean_std_is_the_sample_std_with_n(R):
-    assert R._ours(R.mean_std([0.5, 0.55])) == '0.525 ± 0.035 (n=2)'  # ddof=0 would print 0.025
-    assert R._ours(R.mean_std([1.0, 0.475, 1.0])) == '0.825 ± 0.303 (n=3)'  # ddof=0: 0.247
-    assert R.mean_std([0.3]) == (0.3, None, 1)
+def test_mean_std_is_the_sample_std_with_n():
+    assert _ours(mean_std([0.5, 0.55])) == '0.525 ± 0.035 (n=2)'  # ddof=0 would print 0.025
+    assert _ours(mean_std([1.0, 0.475, 1.0])) == '0.825 ± 0.303 (n=3)'  # ddof=0: 0.247
+    assert mean_std([0.3]) == (0.3, None, 1)
 
 
-def test_config_text_says_paper_settings_only_when_they_ran(R, tmp_path):
+def test_config_text_says_paper_settings_only_when_they_ran(tmp_path):
     runs = tmp_path / 'runs'
     base = dict(distractors=False, task='directed', model='rgbd_sg_attn', model_option=[])
     fake_run(runs / 'directed_rgbd_sg_attn' / 's0', 0, 0.9, 0.8, preset='paper', **base)
     fake_run(runs / 'directed_rgbd_sg_attn' / 's1', 1, 0.7, 0.6, preset='paper', lr=1e-3, **base)
     fake_run(runs / 'directed_rgbd' / 's0', 0, 0.5, 0.2, **{**base, 'model': 'rgbd'})
-    f = R.collect_cell(runs, next(c for c in R.GRID if c.name == 'directed_rgbd_sg_attn'))
-    text = R.config_text(f)
+    f = collect_cell(runs, next(c for c in GRID if c.name == 'directed_rgbd_sg_attn'))
+    text = config_text(f)
     # Seeds that ran different configs say so, each with its own description.
     assert (
         text.startswith('seeds ran different configs: seed 0: preset paper (= the paper')
@@ -185,64 +212,64 @@ def test_config_text_says_paper_settings_only_when_they_ran(R, tmp_path):
     )
     assert "seed 1: preset paper, changed: ppo.lr (not the paper's settings)" in text and 'lr 1e-3' in text
     # Rows of a table that ran different settings say so under the table.
-    cells = [c for c in R.GRID if c.name in ('directed_rgbd', 'directed_rgbd_sg_attn')]
-    done = [(c, R.collect_cell(runs, c)) for c in cells]
-    lines = R.table_comparison(2, done)
+    cells = [c for c in GRID if c.name in ('directed_rgbd', 'directed_rgbd_sg_attn')]
+    done = [(c, collect_cell(runs, c)) for c in cells]
+    lines = table_comparison(2, done)
     assert lines[0].startswith('The rows of this table did not all run the same settings: ')
     assert "preset default (not the paper's settings) (RGB-D only)" in lines[0]
 
 
-def test_profiles(R, capsys, tmp_path):
-    for cell in R.GRID:
-        paper = R.profile_config('paper', cell)
-        assert '--preset paper' in ' '.join(R.train_argv(cell, 0, Path('x'), 'paper'))
-        assert paper.preset == 'paper' and R.paper_diff(paper) == []
-        assert R.paper_diff(R.profile_config('cpu', cell))  # the cheap profile is not the paper's
+def test_profiles(cli, capsys, tmp_path):
+    for cell in GRID:
+        paper = profile_config('paper', cell)
+        assert '--preset paper' in ' '.join(train_argv(cell, 0, Path('x'), 'paper'))
+        assert paper.preset == 'paper' and paper_diff(paper) == []
+        assert paper_diff(profile_config('cpu', cell))  # the cheap profile is not the paper's
         assert cell.label == run_label(paper)  # the report's row = the run's own label
-    assert R.profile_steps('paper', 'directed') == 1_500_000
-    assert R.profile_steps('cpu', 'directed') == 131_072
-    assert R.main(['--plan', '--runs', str(tmp_path), '--tables', '2']) == 0
+    assert profile_steps('paper', 'directed') == 1_500_000
+    assert profile_steps('cpu', 'directed') == 131_072
+    assert cli.main(['--plan', '--runs', str(tmp_path), '--tables', '2']) == 0
     out = capsys.readouterr().out
     assert "profile cpu: NOT the paper's settings" in out
     assert "settings (cpu): preset default (not the paper's settings); camera 32x32;" in out
 
 
-def test_every_command_of_the_gpu_tables_script_parses(R, tmp_path):
+def test_every_command_of_the_gpu_tables_script_parses(cli, tmp_path):
     from test_bench import gpu_script_commands  # the stand-in python3 that records commands
 
     runs = gpu_script_commands(
         tmp_path, 'tools/gpu_tables.sh', '2 3', '540', '8192', 'exploratory', RUNS=str(tmp_path / 'runs')
     )
     assert [a[0] for a in runs] == ['tools/reproduce.py'] * 2, runs
-    train, report = (R.build_parser().parse_args(a[1:]) for a in runs)  # SystemExit names a bad option
+    train, report = (cli.build_parser().parse_args(a[1:]) for a in runs)  # SystemExit names a bad option
     assert (train.profile, train.tables, train.cells) == ('gpu', [2, 3], 'exploratory')
     assert train.total_steps == 8192
     assert 30 <= train.budget_s < 540 and not train.from_runs
     assert report.from_runs and report.runs == train.runs == str(tmp_path / 'runs')
 
 
-def test_ordering_disagreements(R):
+def test_ordering_disagreements():
     paper = {'RGB-D only': 0.417, 'RGB-D + SG': 0.425, 'RGB-D + SG + TD ATTN': 0.900}
     ours = {'RGB-D only': 0.525, 'RGB-D + SG': 0.500, 'RGB-D + SG + TD ATTN': 0.900}
     # Table II with distractors: RGB-D only > RGB-D + SG here, < in the paper; the others agree.
-    assert R.ordering_disagreements(ours, paper) == [('RGB-D only', 'RGB-D + SG', 0.525, 0.5, 0.417, 0.425)]
-    sentence = R.ordering_sentence('SR', ours, paper)
+    assert ordering_disagreements(ours, paper) == [('RGB-D only', 'RGB-D + SG', 0.525, 0.5, 0.417, 0.425)]
+    sentence = ordering_sentence('SR', ours, paper)
     assert sentence.startswith('SR: 1 of 3 pairs of rows is NOT ordered as in the paper: ')
     assert 'RGB-D only 0.525 > RGB-D + SG 0.500 here, 0.417 < 0.425 in the paper' in sentence
     agree = {'RGB-D only': 0.4, 'RGB-D + SG': 0.5, 'RGB-D + SG + TD ATTN': 0.9}
-    assert R.ordering_disagreements(agree, paper) == []
-    assert R.ordering_sentence('SR', agree, paper) == 'SR: all 3 pairs of rows are ordered as in the paper.'
+    assert ordering_disagreements(agree, paper) == []
+    assert ordering_sentence('SR', agree, paper) == 'SR: all 3 pairs of rows are ordered as in the paper.'
     # A tie on one side only is a different order; rows the paper lacks are left out.
-    assert R.ordering_disagreements(
+    assert ordering_disagreements(
         {'SG': 0.825, 'SG + TD ATTN': 0.825, 'x': 1.0}, {'SG': 0.997, 'SG + TD ATTN': 0.991}
     ) == [('SG', 'SG + TD ATTN', 0.825, 0.825, 0.997, 0.991)]
-    assert R.ordering_sentence('SR', {'SG': 0.5}, {'SG': 0.6}) is None
+    assert ordering_sentence('SR', {'SG': 0.5}, {'SG': 0.6}) is None
 
 
-def test_plan_lists_every_cell(R, tmp_path, capsys):
-    assert R.main(['--plan', '--runs', str(tmp_path), '--tables', '1', '2', '3']) == 0
+def test_plan_lists_every_cell(cli, tmp_path, capsys):
+    assert cli.main(['--plan', '--runs', str(tmp_path), '--tables', '1', '2', '3']) == 0
     text = capsys.readouterr().out
-    for cell in R.GRID:
+    for cell in GRID:
         assert cell.name in text
     assert '--total-steps 61440 --model-option hidden=32' in text  # choice: cpu profile
     assert (
@@ -251,25 +278,25 @@ def test_plan_lists_every_cell(R, tmp_path, capsys):
     ) in text
 
 
-def test_generalisation_section_reads_held_out_evals(R, tmp_path):
+def test_generalisation_section_reads_held_out_evals(tmp_path):
     runs = tmp_path / 'runs'
     for seed, (sr, held) in enumerate(((0.6, 0.2), (0.4, 0.0))):
         d = runs / 'exploratory_rgbd_sg_attn' / f's{seed}'
         fake_run(d, seed, sr, sr / 2, distractors=False, task='exploratory')
-        fake_eval(R.held_out_dir(d, R.HELD_OUT[0]), held, held / 2)
-    row = next(l for l in R.generalisation_section(runs) if l.startswith('| RGB-D + SG + TD ATTN |'))
+        fake_eval(held_out_dir(d, HELD_OUT[0]), held, held / 2)
+    row = next(l for l in generalisation_section(runs) if l.startswith('| RGB-D + SG + TD ATTN |'))
     # Training house: mean SR of the seeds 0.5, SPL 0.25; house_1: 0.1 / 0.05; others not run.
     assert row.split(' | ')[2:5] == ['0.500 / 0.250 (2 x 50)', '0.100 / 0.050 (2 x 50)', 'not yet run']
     # The chance level of each house comes from the random-policy evaluations under _reference.
     (runs / '_reference').mkdir()
-    fake_eval(R.reference_dir(runs, 'random', R.TRAIN_HOUSE), 0.05, 0.01)
-    chance = next(l for l in R.generalisation_section(runs) if l.startswith('| random policy'))
+    fake_eval(reference_dir(runs, 'random', TRAIN_HOUSE), 0.05, 0.01)
+    chance = next(l for l in generalisation_section(runs) if l.startswith('| random policy'))
     assert chance.split(' | ')[2:4] == ['0.050 / 0.010 (1 x 50)', 'not yet run']
 
 
-def test_attention_section_reads_summaries_and_figures(R, tmp_path):
+def test_attention_section_reads_summaries_and_figures(tmp_path):
     runs, out_dir = tmp_path / 'runs', tmp_path / 'docs'
-    name = R.ATTENTION_CELLS[0]
+    name = ATTENTION_CELLS[0]
     (runs / name / 's0').mkdir(parents=True)
     summary = {
         'no distractors': {'episodes': 8, 'pool_goal_share_model': 1.0, 'pool_goal_share_mean': 0.5},
@@ -281,31 +308,31 @@ def test_attention_section_reads_summaries_and_figures(R, tmp_path):
     figdir = out_dir / 'reproduction'
     figdir.mkdir(parents=True)
     (figdir / f'{name}_edge_types.png').write_bytes(b'png')
-    text = '\n'.join(R.attention_section(runs, figdir, out_dir))
+    text = '\n'.join(attention_section(runs, figdir, out_dir))
     assert f'### {name} (seed 0, checkpoint after 8 updates)' in text
     assert '| condition | episodes | pool goal share model | pool goal share mean |' in text
     assert '| distractors | 8 | 1 | 0.25 |' in text
     assert f'](reproduction/{name}_edge_types.png)' in text and 'graph_on_map' not in text
     # The other cell has no summary: no section invented for it.
-    assert f'### {R.ATTENTION_CELLS[1]}' not in text
+    assert f'### {ATTENTION_CELLS[1]}' not in text
 
 
-def test_a_shorter_run_is_resumed_to_the_profile_budget(R, tmp_path, monkeypatch):
+def test_a_shorter_run_is_resumed_to_the_profile_budget(tmp_path, monkeypatch):
     runs = tmp_path / 'runs'
-    cell = next(c for c in R.GRID if c.name == 'exploratory_rgbd_sg_attn')
+    cell = next(c for c in GRID if c.name == 'exploratory_rgbd_sg_attn')
     d = runs / cell.name / 's0'
     # 1,024 env steps at the cpu profile's settings, evaluated
     fake_run(d, 0, 0.5, 0.25, distractors=False, task='exploratory', model_option=[])
     (d / 'checkpoints').mkdir()
-    stale = R.held_out_dir(d, R.HELD_OUT[0])
+    stale = held_out_dir(d, HELD_OUT[0])
     fake_eval(stale, 0.0, 0.0)
     calls = []
-    monkeypatch.setattr(R, 'run_logged', lambda argv, log: calls.append(argv) or 5.0)
-    R.run_cell_seed(cell, 0, runs, 'cpu', 20)
-    budget = str(R.profile_steps('cpu', 'exploratory'))
+    monkeypatch.setattr(runner, 'run_logged', lambda argv, log: calls.append(argv) or 5.0)
+    runner.run_cell_seed(cell, 0, runs, 'cpu', 20)
+    budget = str(profile_steps('cpu', 'exploratory'))
     assert calls[0] == ['python', 'train.py', '--resume', str(d), '--total-steps', budget, '--no-progress']
     assert calls[1][:2] == ['python', 'eval.py'] and not stale.exists()  # re-evaluated, stale gone
-    assert [c[c.index('--scene') + 1] for c in calls[2:]] == [str(R.ROOT / s) for s in R.HELD_OUT]
+    assert [c[c.index('--scene') + 1] for c in calls[2:]] == [str(runner.ROOT / s) for s in HELD_OUT]
     side = json.loads((d / 'repro.json').read_text())
     assert side['train_wall_s'] == 35.0  # 30 s of the first run + 5 s of the extension
     # A run at its budget is left alone.
@@ -313,15 +340,15 @@ def test_a_shorter_run_is_resumed_to_the_profile_budget(R, tmp_path, monkeypatch
     rows = [json.loads(l) for l in (d / 'metrics.jsonl').read_text().splitlines()]
     rows[-1]['env_steps'] = int(budget)
     (d / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
-    R.run_cell_seed(cell, 0, runs, 'cpu', 20)
+    runner.run_cell_seed(cell, 0, runs, 'cpu', 20)
     assert calls == []
 
 
 def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_checkout(
-    R, tmp_path, monkeypatch, capsys
+    cli, tmp_path, monkeypatch, capsys
 ):
     runs, out = tmp_path / 'runs', tmp_path / 'docs' / 'reproduction.md'
-    cell = next(c for c in R.GRID if c.name == 'choice_rgbd_sg_attn_dist')
+    cell = next(c for c in GRID if c.name == 'choice_rgbd_sg_attn_dist')
     for seed, sr in enumerate((1.0, 0.9)):
         d = runs / cell.name / f's{seed}'
         fake_run(d, seed, sr, sr)
@@ -330,7 +357,7 @@ def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_chec
         (d / 'tb').mkdir()
     (runs / '_reference').mkdir()
     fake_eval(runs / '_reference' / 'random_house', 0.1, 0.05)
-    assert R.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
+    assert cli.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
     archive = tmp_path / 'docs' / 'reproduction' / 'runs'
     files = sorted(p.relative_to(archive).as_posix() for p in archive.rglob('*') if p.is_file())
     assert files == sorted(
@@ -339,36 +366,36 @@ def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_chec
             *[
                 f'choice_rgbd_sg_attn_dist/s{s}/{f}'
                 for s in (0, 1)
-                for f in R.ARCHIVED[:3] + ('eval_trained/eval.json',)
+                for f in ARCHIVED[:3] + ('eval_trained/eval.json',)
             ],
         ]
     )
     table = [l for l in out.read_text().splitlines() if l.startswith('| yes | SG + TD ATTN |')]
     # A fresh checkout (no runs/) writes the same rows from the archive alone ...
     fresh = tmp_path / 'fresh_runs'
-    assert R.main(['--from-runs', '--runs', str(fresh), '--out', str(out)]) == 0
+    assert cli.main(['--from-runs', '--runs', str(fresh), '--out', str(out)]) == 0
     assert [l for l in out.read_text().splitlines() if l.startswith('| yes | SG + TD ATTN |')] == table
     assert (fresh / 'choice_rgbd_sg_attn_dist' / 's1' / 'eval_trained' / 'eval.json').is_file()
     # --plan reads the archive without restoring it: 2 of 3 seeds done, the cost of the third from their rate.
     planned = tmp_path / 'planned_runs'
-    assert R.main(['--plan', '--runs', str(planned), '--out', str(out), '--tables', '1']) == 0
+    assert cli.main(['--plan', '--runs', str(planned), '--out', str(out), '--tables', '1']) == 0
     line = next(l for l in capsys.readouterr().out.splitlines() if l.split()[2:3] == [cell.name])
     # the fake runs log 128 env steps/s; the cpu profile trains choice 61,440 steps per seed: 480 s
     assert line.endswith('2/3 seeds evaluated; 1 to train: 128 env steps/s (its runs) -> 8.0 min'), line
     assert not planned.exists()
     # ... and the runner counts the restored runs as done: nothing is retrained.
     calls = []
-    monkeypatch.setattr(R, 'run_logged', lambda argv, log: calls.append(argv) or 5.0)
-    monkeypatch.setattr(R, 'profile_steps', lambda profile, task: 1024)
-    R.run_cell_seed(cell, 1, fresh, 'cpu', 50)
+    monkeypatch.setattr(runner, 'run_logged', lambda argv, log: calls.append(argv) or 5.0)
+    monkeypatch.setattr(runner, 'profile_steps', lambda profile, task: 1024)
+    runner.run_cell_seed(cell, 1, fresh, 'cpu', 50)
     assert calls == []
     # A restored run short of the budget cannot be resumed (no checkpoints): the error says so.
-    monkeypatch.setattr(R, 'profile_steps', lambda profile, task: 4096)
+    monkeypatch.setattr(runner, 'profile_steps', lambda profile, task: 4096)
     with pytest.raises(SystemExit, match='no checkpoints to resume'):
-        R.run_cell_seed(cell, 1, fresh, 'cpu', 50)
+        runner.run_cell_seed(cell, 1, fresh, 'cpu', 50)
 
 
-def test_probe_runs_the_paper_profile(R, tmp_path, monkeypatch):
+def test_probe_runs_the_paper_profile(cli, tmp_path, monkeypatch):
     calls = []
 
     def fake(argv, log):
@@ -376,20 +403,20 @@ def test_probe_runs_the_paper_profile(R, tmp_path, monkeypatch):
         Path(argv[argv.index('--out') + 1]).mkdir(parents=True)
         return 1.0
 
-    monkeypatch.setattr(R, 'run_logged', fake)
-    R.main(['--probe', 'directed_rgbd_sg_attn', '--runs', str(tmp_path)])
+    monkeypatch.setattr(runner, 'run_logged', fake)
+    cli.main(['--probe', 'directed_rgbd_sg_attn', '--runs', str(tmp_path)])
     argv = ' '.join(calls[0])
     assert '--preset paper' in argv and '--total-steps 4096' in argv  # one update of 8 envs x 512
     assert (tmp_path / '_probe' / 'directed_rgbd_sg_attn' / 'repro.json').is_file()
 
 
-def test_a_run_of_other_settings_is_not_resumed_under_a_profile(R, tmp_path, monkeypatch):
+def test_a_run_of_other_settings_is_not_resumed_under_a_profile(tmp_path, monkeypatch):
     runs = tmp_path / 'runs'
-    cell = next(c for c in R.GRID if c.name == 'directed_rgbd_sg_attn')
+    cell = next(c for c in GRID if c.name == 'directed_rgbd_sg_attn')
     fake_run(runs / cell.name / 's0', 0, 0.5, 0.25, distractors=False, task='directed', model_option=[])
-    monkeypatch.setattr(R, 'run_logged', lambda argv, log: pytest.fail(f'ran {argv}'))
+    monkeypatch.setattr(runner, 'run_logged', lambda argv, log: pytest.fail(f'ran {argv}'))
     with pytest.raises(SystemExit, match=r"other settings than profile 'paper' \(.*preset"):
-        R.run_cell_seed(cell, 0, runs, 'paper', 20)
+        runner.run_cell_seed(cell, 0, runs, 'paper', 20)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -412,7 +439,7 @@ def report_row(text: str, table: int, label: str, cond: str) -> list[str]:
 TABLE_HEADS = {1: 'Table I:', 2: 'Table II:', 3: 'Table III:'}
 
 
-def check_row_from_runs(R, text: str, runs: Path, cell, seeds: int = 2) -> None:
+def check_row_from_runs(text: str, runs: Path, cell, seeds: int = 2) -> None:
     """The report row of `cell` holds the numbers of its run's eval.json (mean ± sample std over
     the vmapped seeds, n), its seeds x episodes and env steps, read from the run dir."""
     run = runs / cell.name / f's0x{seeds}'
@@ -422,10 +449,10 @@ def check_row_from_runs(R, text: str, runs: Path, cell, seeds: int = 2) -> None:
     cond = ('yes' if cell.distractors else 'no') if cell.table < 3 else ('yes' if cell.premap else 'no')
     row = report_row(text, cell.table, cell.label, cond)
     ours = row[3] if cell.table == 1 else row[4]
-    assert ours == R._ours(R.mean_std(s['success']['per_seed'])), (cell.name, row)
+    assert ours == _ours(mean_std(s['success']['per_seed'])), (cell.name, row)
     assert f'(n={seeds})' in ours
     if cell.table > 1:
-        assert row[5] == R._ours(R.mean_std(s['spl']['per_seed'])), (cell.name, row)
+        assert row[5] == _ours(mean_std(s['spl']['per_seed'])), (cell.name, row)
     rest = row[4:] if cell.table == 1 else row[6:]
     steps = json.loads((run / 'metrics.jsonl').read_text().splitlines()[-1])['env_steps']
     assert rest[0] == f'{seeds} x {s["episodes"]}' and rest[1] == f'{steps:,}' == '32'
@@ -433,7 +460,7 @@ def check_row_from_runs(R, text: str, runs: Path, cell, seeds: int = 2) -> None:
     assert 'PPO 4 envs x 4 steps, 1 epochs, minibatch 16' in rest[4]  # the tiny profile's, from config.json
 
 
-def test_tiny_profile_runs_table_1_and_a_navigation_cell_per_table_end_to_end(R, tmp_path, capsys):
+def test_tiny_profile_runs_table_1_and_a_navigation_cell_per_table_end_to_end(cli, tmp_path, capsys):
     """Table I completely and one cell each of Tables II and III, trained and evaluated in this
     process at the tiny profile, then the report from the run dirs. The first call trains one of
     the two updates of every Table I cell and stops (as a lease's time box does); the second
@@ -441,14 +468,14 @@ def test_tiny_profile_runs_table_1_and_a_navigation_cell_per_table_end_to_end(R,
     program built, ~0 s compiling), finishes and evaluates them, and runs the navigation cells;
     a third call finds everything done."""
     runs, out = tmp_path / 'runs', tmp_path / 'docs' / 'reproduction.md'
-    table1 = [c for c in R.GRID if c.table == 1]
-    nav = [c for c in R.GRID if c.name in NAV_CELLS]
-    run = lambda cells, **kw: R.run_cells_in_process(cells, 'tiny', runs, compile_cache='none', **kw)
+    table1 = [c for c in GRID if c.table == 1]
+    nav = [c for c in GRID if c.name in NAV_CELLS]
+    run = lambda cells, **kw: runner.run_cells_in_process(cells, 'tiny', runs, compile_cache='none', **kw)
 
     first = run(table1, max_updates=1)
     assert [r['status'] for r in first] == ['stopped at 16 of 32; evaluated next time'] * 4
     assert [r['programs_built'] for r in first] == [1] * 4  # no two cells of the grid share one
-    assert all(R.eval_json(runs / c.name / 's0x2') is None for c in table1)
+    assert all(eval_json(runs / c.name / 's0x2') is None for c in table1)
 
     second = run(table1 + nav)
     assert [r['status'] for r in second] == ['evaluated'] * 6
@@ -470,13 +497,13 @@ def test_tiny_profile_runs_table_1_and_a_navigation_cell_per_table_end_to_end(R,
     # Everything done: the CLI skips every cell and writes the report from the runs.
     regex = '^(choice_.*|' + '|'.join(NAV_CELLS) + ')$'
     argv = ['--profile', 'tiny', '--cells', regex, '--compile-cache', 'none']
-    assert R.main(argv + ['--runs', str(runs), '--out', str(out)]) == 0
+    assert cli.main(argv + ['--runs', str(runs), '--out', str(out)]) == 0
     printed = capsys.readouterr().out
     assert printed.count('done already') == 6 and 'built' not in printed
-    assert R.main(['--from-runs', '--runs', str(runs), '--out', str(out), '--seeds', '2']) == 0
+    assert cli.main(['--from-runs', '--runs', str(runs), '--out', str(out), '--seeds', '2']) == 0
     text = out.read_text()
     for cell in table1 + nav:
-        check_row_from_runs(R, text, runs, cell)
+        check_row_from_runs(text, runs, cell)
     assert text.count('not yet run') >= 13  # the other cells, not invented
 
 
@@ -484,17 +511,18 @@ def test_tiny_profile_runs_table_1_and_a_navigation_cell_per_table_end_to_end(R,
     not os.environ.get('HRON_REPRO_TINY_ALL'),
     reason='all of Tables I-III at the tiny profile (~30-60 min on 2 cores): set HRON_REPRO_TINY_ALL=1',
 )
-def test_tiny_profile_runs_all_tables_end_to_end(R, tmp_path):
+def test_tiny_profile_runs_all_tables_end_to_end(cli, tmp_path):
     """Every cell of Tables I-III (and the held-out houses of the exploratory main model) through
     the CLI at the tiny profile, then the report: every row is filled from the runs."""
     runs, out = tmp_path / 'runs', tmp_path / 'docs' / 'reproduction.md'
     assert (
-        R.main(['--profile', 'tiny', '--compile-cache', 'none', '--runs', str(runs), '--out', str(out)]) == 0
+        cli.main(['--profile', 'tiny', '--compile-cache', 'none', '--runs', str(runs), '--out', str(out)])
+        == 0
     )
     text = out.read_text()
-    for cell in R.GRID:
-        check_row_from_runs(R, text, runs, cell)
+    for cell in GRID:
+        check_row_from_runs(text, runs, cell)
     assert 'not yet run' not in text.split('## Generalisation')[0]
     main = runs / 'exploratory_rgbd_sg_attn' / 's0x2'
-    for scene in R.HELD_OUT:
-        assert (R.held_out_dir(main, scene) / 'eval.json').is_file()
+    for scene in HELD_OUT:
+        assert (held_out_dir(main, scene) / 'eval.json').is_file()

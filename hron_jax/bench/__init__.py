@@ -12,7 +12,7 @@ One module per benchmark, each saying in its docstring what it measures and what
     discovery object first-discovery distance per category and camera size (bench/discovery.py)
 Every subcommand prints the machine first and the load average last; table rows appear as soon
 as they are measured. Shared helpers: bench/common.py. This package imports no JAX until a
-benchmark runs: tools/reproduce.py imports `machine` from here.
+benchmark runs: hron_jax.reproduction (tools/reproduce.py) imports `machine` from here.
 """
 
 from .common import machine, machine_info  # noqa: F401

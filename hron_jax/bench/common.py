@@ -1,6 +1,6 @@
 """Shared by the benchmarks: the machine a measurement ran on, timing, and streamed tables.
 
-Measures nothing itself. `machine()` / `machine_info()` describe the machine (tools/reproduce.py
+Measures nothing itself. `machine()` / `machine_info()` describe the machine (hron_jax.reproduction
 records `machine()` with every run; every subcommand prints `machine_info()` first and the load
 average last); `timed` / `best_time` / `time_calls` time jitted calls (results blocked, best of
 `repeats`, since the machine may be shared); `stream_table` prints a Markdown table row by row the

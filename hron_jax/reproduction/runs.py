@@ -1,0 +1,246 @@
+"""Where the reproduction's runs lie and what they hold: the run-dir layout, the archive, reading.
+
+Layout: RUNS/<cell>/<run> is a train.py run dir (run_name: s<seed>, or s<seed>x<n> for n vmapped
+seeds) with eval.py's output in EVAL_DIR (eval_argv: the command; eval_json: its eval.json),
+evaluations in held-out houses beside it (held_out_dir), the random policy's evaluations under
+RUNS/_reference (reference_dir) and probe runs under RUNS/_probe/<cell>. ROOT is the repository
+root, where train.py and eval.py run (_rel: a path relative to it, for the report and messages).
+
+The archive: the ARCHIVED files of every run, in git beside the report (archive_of(out));
+restore_runs copies the archived runs RUNS lacks into it, save_runs copies RUNS's into the archive.
+
+Reading: cell_runs(runs, cell) -> its run dirs; num_seeds_of, steps_per_second (measured env
+steps/s); collect_cell(runs, cell) -> a dict of its evaluated runs' per-seed SR / SPL (mean_std:
+mean, sample std, n), env steps, wall times, machines and configs in words (grid.settings), or
+None; seed0_dir -> the run holding seed 0. Writes nothing but the archive and restored runs.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from hron_jax.paths import REPO_ROOT
+from hron_jax.reproduction.grid import Cell, describe_config, settings
+
+# ------------------------------------------------------------------------------------------------
+# The layout of RUNS
+# ------------------------------------------------------------------------------------------------
+
+ROOT = Path(REPO_ROOT).resolve()
+
+
+def _rel(p: Path) -> str:
+    try:
+        return Path(p).resolve().relative_to(ROOT).as_posix()
+    except ValueError:
+        return str(p)
+
+
+def run_name(cfg) -> str:
+    """A run's dir name under RUNS/<cell>/: s<seed>, or s<seed>x<seeds> for vmapped seeds."""
+    return f's{cfg.seed}' + (f'x{cfg.num_seeds}' if cfg.num_seeds > 1 else '')
+
+
+def reference_dir(runs: Path, policy: str, scene: str) -> Path:
+    return runs / '_reference' / f'{policy}_{Path(scene).stem}'
+
+
+def held_out_dir(run_dir: Path, scene: str) -> Path:
+    return Path(run_dir) / f'{EVAL_DIR}_{Path(scene).stem}'
+
+
+# eval.py's output dir inside a run (named explicitly: eval.py's default name has changed before).
+EVAL_DIR = 'eval_trained'
+
+
+def eval_argv(run_dir: Path, episodes: int, out: Path | None = None, extra=()) -> list[str]:
+    """eval.py on a run dir, output to `out` (default RUN/eval_trained); extra: more options."""
+    run_dir = Path(run_dir).resolve()
+    return [
+        'python',
+        'eval.py',
+        str(run_dir),
+        '--episodes',
+        str(episodes),
+        *extra,
+        '--out',
+        str(out or run_dir / EVAL_DIR),
+    ]
+
+
+def eval_json(run_dir: Path) -> Path | None:
+    """The run's eval.json (ours, else eval.py's default sampled-policy dir), or None."""
+    for name in (EVAL_DIR, 'eval_trained_sampled'):
+        p = Path(run_dir) / name / 'eval.json'
+        if p.is_file():
+            return p
+    return None
+
+
+# ------------------------------------------------------------------------------------------------
+# The archive beside the report
+# ------------------------------------------------------------------------------------------------
+
+# The files of a run that the report reads (no checkpoints, TensorBoard or figures): the report's
+# runs keep them in git beside it, so a fresh checkout (no runs/) regenerates the report and adds
+# seeds to it. Units are RUNS/<cell>/<run> (and _reference/<policy_house>, _probe/<cell>).
+ARCHIVED = ('config.json', 'metrics.jsonl', 'repro.json', 'attention_summary.json', 'eval.json', 'eval.md')
+NOT_ARCHIVED_DIRS = ('checkpoints', 'corrupt_checkpoints', 'tb')
+
+
+def archive_of(out: Path) -> Path:
+    """Where the runs of the report at `out` are archived: <out's dir>/reproduction/runs."""
+    return Path(out).parent / 'reproduction' / 'runs'
+
+
+def _units(root: Path) -> list[Path]:
+    return sorted(d for d in Path(root).glob('*/*') if d.is_dir()) if Path(root).is_dir() else []
+
+
+def restore_runs(archive: Path, runs: Path) -> list[str]:
+    """Copy every archived run that RUNS does not have into RUNS; returns their names. A restored
+    run has no checkpoints: it is finished and evaluated, so the runner skips it."""
+    restored = []
+    for unit in _units(archive):
+        rel = unit.relative_to(archive)
+        if not (runs / rel).exists():
+            shutil.copytree(unit, runs / rel)
+            restored.append(rel.as_posix())
+    return restored
+
+
+def save_runs(runs: Path, archive: Path) -> None:
+    """Replace the archive's copy of every run in RUNS by the run's ARCHIVED files (archived runs
+    that RUNS lacks stay: delete them there to drop them from the report)."""
+    for unit in _units(runs):
+        files = [
+            f
+            for f in unit.rglob('*')
+            if f.name in ARCHIVED
+            and f.is_file()
+            and not set(f.relative_to(unit).parts[:-1]) & set(NOT_ARCHIVED_DIRS)
+        ]
+        if not files:
+            continue
+        dest = archive / unit.relative_to(runs)
+        shutil.rmtree(dest, ignore_errors=True)
+        for f in files:
+            target = dest / f.relative_to(unit)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f, target)
+
+
+# ------------------------------------------------------------------------------------------------
+# Reading run dirs
+# ------------------------------------------------------------------------------------------------
+
+
+def _rows(run_dir: Path) -> list[dict]:
+    from hron_jax.run_dir import read_metrics
+
+    return read_metrics(run_dir)
+
+
+def cell_runs(runs: Path, cell: Cell) -> list[Path]:
+    """Run dirs (with config.json) under RUNS/<cell>/, sorted."""
+    base = runs / cell.name
+    if not base.is_dir():
+        return []
+    return sorted(p for p in base.iterdir() if (p / 'config.json').is_file())
+
+
+def num_seeds_of(run_dir: Path) -> int:
+    """How many seeds a run dir trained (its config's num_seeds; vmapped in one run)."""
+    return int(json.loads((Path(run_dir) / 'config.json').read_text())['config'].get('num_seeds', 1))
+
+
+def steps_per_second(run_dirs: list[Path]) -> float | None:
+    """Median env steps/s (all seeds of a run together) over the logged chunks; compile excluded."""
+    rates = [r['steps_per_s'] for d in run_dirs for r in _rows(d) if r.get('steps_per_s')]
+    return float(np.median(rates)) if rates else None
+
+
+def collect_cell(runs: Path, cell: Cell) -> dict | None:
+    """Aggregate a cell's evaluated runs: per-seed SR / SPL means, steps, wall times, configs."""
+    from hron_jax.run_config import TrainConfig
+
+    seeds, steps, train_wall, proc_wall, configs, episodes, machines, loads = (
+        [],
+        [],
+        [],
+        [],
+        [],
+        set(),
+        [],
+        [],
+    )
+    for d in cell_runs(runs, cell):
+        ev = eval_json(d)
+        if ev is None:
+            continue
+        e = json.loads(ev.read_text())
+        s = e['summary']
+        cfg = TrainConfig.from_dict(json.loads((d / 'config.json').read_text())['config'])
+        rows = _rows(d)
+        run_seeds = []
+        for i, (sr, spl) in enumerate(zip(s['success']['per_seed'], s['spl']['per_seed'])):
+            seeds.append((cfg.seed + i, sr, spl))
+            run_seeds.append(cfg.seed + i)
+        episodes.add(s['episodes'])
+        # Wall times per seed: a run of n vmapped seeds counts n times with its wall / n.
+        n = len(run_seeds)
+        if rows:
+            steps.append(rows[-1]['env_steps'])
+            train_wall += [rows[-1]['wall_time'] / n] * n
+        side = d / 'repro.json'
+        if side.is_file():
+            r = json.loads(side.read_text())
+            proc_wall += [(r.get('train_wall_s', np.nan) + r.get('eval_wall_s', 0.0)) / n] * n
+            if r.get('machine'):
+                machines.append(r['machine'])
+            loads += r.get('loadavg_training') or (r.get('machine') or {}).get('loadavg', [])[:1]
+        configs.append((run_seeds, cfg))
+    if not seeds:
+        return None
+    sr = np.array([x[1] for x in seeds])
+    spl = np.array([x[2] for x in seeds])
+    # The runs' configs in words, with the seeds of each (runs of one cell may differ).
+    described: dict[str, list[int]] = {}
+    for run_seeds, cfg in configs:
+        described.setdefault(describe_config(cfg), []).extend(run_seeds)
+    return {
+        'seeds': [x[0] for x in seeds],
+        'sr': mean_std(sr),
+        'spl': mean_std(spl),
+        'sr_per_seed': sr.tolist(),
+        'spl_per_seed': spl.tolist(),
+        'episodes': sorted(episodes),
+        'env_steps': sorted(set(steps)),
+        'train_wall_s': float(np.mean(train_wall)) if train_wall else None,
+        'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
+        'steps_per_s': steps_per_second(cell_runs(runs, cell)),
+        'configs': described,
+        'settings': [settings(cfg) for _, cfg in configs],
+        'machine': machines[0] if machines else None,
+        'loads': loads,
+    }
+
+
+def mean_std(x) -> tuple[float, float | None, int]:
+    """(mean, sample std with ddof=1 or None for one value, n) of per-seed values."""
+    x = np.asarray(x, np.float64)
+    return float(x.mean()), (float(x.std(ddof=1)) if len(x) > 1 else None), len(x)
+
+
+def seed0_dir(runs: Path, name: str) -> Path:
+    """The run dir holding seed 0 of a cell: s0, else an evaluated run of vmapped seeds s0x<n>
+    (whose seed index 0 is seed 0); s0 when neither exists."""
+    base = runs / name
+    for d in [base / 's0'] + sorted(base.glob('s0x*')):
+        if eval_json(d) is not None:
+            return d
+    return base / 's0'
