@@ -30,12 +30,12 @@ from hron_jax.reproduction.grid import (  # noqa: E402
     PROFILE_EPISODES,
     PROFILE_TEXT,
     PROFILES,
-    _main_cell,
     describe_config,
+    main_cell,
     profile_config,
     train_argv,
 )
-from hron_jax.reproduction.report import _fmt_time, estimate, write_report  # noqa: E402
+from hron_jax.reproduction.report import estimate, fmt_duration, write_report  # noqa: E402
 from hron_jax.reproduction.runner import (  # noqa: E402
     attention_figures,
     in_process_argv,
@@ -47,12 +47,12 @@ from hron_jax.reproduction.runner import (  # noqa: E402
 )
 from hron_jax.reproduction.runs import (  # noqa: E402
     ROOT,
-    _rel,
     archive_of,
     cell_runs,
     eval_argv,
     eval_json,
     num_seeds_of,
+    repo_relative,
     restore_runs,
     run_name,
 )
@@ -122,12 +122,14 @@ def main(argv=None) -> int:
     runs, out = Path(a.runs), Path(a.out)
     in_process = a.profile in IN_PROCESS
     if a.seeds is None:
-        a.seeds = profile_config(a.profile, _main_cell('choice')).num_seeds if in_process else 3
+        a.seeds = profile_config(a.profile, main_cell('choice')).num_seeds if in_process else 3
     cells = [c for c in GRID if c.table in a.tables and (not a.cells or re.search(a.cells, c.name))]
     if not (a.plan or a.probe):  # --plan reads the archive where it is; the probe writes its own short runs
         restored = restore_runs(archive_of(out), runs)
         if restored:
-            print(f'restored {len(restored)} archived runs into {runs} (from {_rel(archive_of(out))})')
+            print(
+                f'restored {len(restored)} archived runs into {runs} (from {repo_relative(archive_of(out))})'
+            )
     if a.probe:
         by_name = {c.name: c for c in GRID}
         for name in a.probe:
@@ -168,8 +170,8 @@ def main(argv=None) -> int:
                     + shlex.join(eval_argv(d, a.episodes or EPISODES[c.task]))
                 )
         print(
-            f'estimated training time of the seeds left to train in the measured cells: {_fmt_time(total)} '
-            '(compilation and evaluation excluded)'
+            'estimated training time of the seeds left to train in the measured cells: '
+            f'{fmt_duration(total)} (compilation and evaluation excluded)'
         )
         return 0
     if a.attention:

@@ -144,7 +144,7 @@ def profile_config(profile: str, cell: Cell):
 
 
 def profile_steps(profile: str, task: str) -> int:
-    return profile_config(profile, _main_cell(task)).ppo.total_timesteps
+    return profile_config(profile, main_cell(task)).ppo.total_timesteps
 
 
 # ------------------------------------------------------------------------------------------------
@@ -224,12 +224,12 @@ def describe_config(cfg) -> str:
     return '; '.join(settings(cfg).values())
 
 
-def _main_cell(task: str) -> Cell:
+def main_cell(task: str) -> Cell:
     """The main model's cell of a task (no distractors, no pre-map)."""
     return next(c for c in GRID if c.task == task and c.model == 'rgbd_sg_attn')
 
 
-def _what(cfg) -> str:
+def settings_text(cfg) -> str:
     """describe_config without the preset (for text that has already said which preset) and the
     physics (a profile leaves it to the machine: `auto`; each run's own text names it)."""
     return '; '.join(v for k, v in settings(cfg).items() if k not in ('preset', 'physics'))
@@ -237,7 +237,7 @@ def _what(cfg) -> str:
 
 def notes(table: int) -> list[str]:
     """Facts about the setup that reading a table needs (they do not depend on particular runs)."""
-    cpu = {t: profile_config('cpu', _main_cell(t)) for t in PAPER_STEPS}
+    cpu = {t: profile_config('cpu', main_cell(t)) for t in PAPER_STEPS}
     if table == 1:
         c = cpu['choice']
         return [
@@ -245,7 +245,7 @@ def notes(table: int) -> list[str]:
             'categories (2 circles, 2 rectangles), so task-driven pooling and mean pooling select the '
             'same nodes: SG and SG + TD ATTN compute the same function and, from the same seed, train '
             "identically (their rows and curves coincide). (2) Profile `cpu`, not the paper's "
-            f'settings: {_what(c)}; the HGT width 32 instead of the release\'s 128 lets '
+            f'settings: {settings_text(c)}; the HGT width 32 instead of the release\'s 128 lets '
             'the 12 runs fit ~25 min on 2 shared cores (2026-12-03); at width 128 a 10-update trial of '
             'the distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed '
             'that has not left chance SR (0.5) by the end of this budget counts as it is; the '
@@ -264,7 +264,7 @@ def notes(table: int) -> list[str]:
         c = cpu['directed']
         return [
             "Notes. (1) Budget and settings: the Config column; rows of profile `cpu` (not the paper's "
-            f'settings) ran {_what(c)}, i.e. {c.ppo.num_updates} PPO '
+            f'settings) ran {settings_text(c)}, i.e. {c.ppo.num_updates} PPO '
             f'updates: with episodes of up to 500 steps each env finishes only a few episodes '
             'during training, so these rows show early learning, not converged policies, and not '
             "under the paper's settings; those and the paper's budget are the `paper` profile "
@@ -277,7 +277,7 @@ def notes(table: int) -> list[str]:
         c = cpu['exploratory']
         return [
             "Notes. (1) Budget and settings: profile `cpu` rows (not the paper's settings) ran "
-            f'{_what(c)}. (2) Estimates for cells without runs use, in order, the '
+            f'{settings_text(c)}. (2) Estimates for cells without runs use, in order, the '
             "cell's own runs, its --probe, or (flagged as a proxy) the main model of the same task: "
             'graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'
         ]

@@ -45,12 +45,12 @@ from hron_jax.reproduction.grid import (
 from hron_jax.reproduction.runs import (
     EVAL_DIR,
     ROOT,
-    _rel,
-    _rows,
     eval_argv,
     eval_json,
     held_out_dir,
+    metric_rows,
     reference_dir,
+    repo_relative,
     run_name,
     seed0_dir,
     steps_per_second,
@@ -98,7 +98,7 @@ def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int
                 f'{out} was trained with other settings than profile {profile!r} ({", ".join(differ)}); '
                 'resuming it would mix them: use another --runs directory or the profile it ran'
             )
-    trained = _rows(out)[-1]['env_steps'] if (out / 'config.json').is_file() and _rows(out) else 0
+    trained = metric_rows(out)[-1]['env_steps'] if (out / 'config.json').is_file() and metric_rows(out) else 0
     if eval_json(out) is not None and trained >= budget:
         print(f'{cell.name} s{seed}: done already', flush=True)
         return
@@ -255,7 +255,7 @@ def attention_figures(runs: Path, figdir: Path, episodes: int = 8, max_steps: in
         (run_dir / 'attention_summary.json').write_text(
             json.dumps(
                 dict(
-                    run_dir=_rel(run_dir),
+                    run_dir=repo_relative(run_dir),
                     step=run.step,
                     episodes=episodes,
                     max_steps=max_steps,
@@ -419,8 +419,8 @@ def run_cells_in_process(
                     f'{run_dir} was trained with other settings than profile {profile!r} '
                     f'({", ".join(differ)}); resuming it would mix them: use another --runs directory'
                 )
-        metric_rows = _rows(run_dir) if exists else []
-        trained = metric_rows[-1]['env_steps'] if metric_rows else 0
+        logged = metric_rows(run_dir) if exists else []
+        trained = logged[-1]["env_steps"] if logged else 0
         if trained >= budget and eval_json(run_dir) is not None:
             rows.append(dict(row, status='done already', env_steps=trained))
             print_row(_row_text(rows[-1]))
@@ -454,7 +454,7 @@ def run_cells_in_process(
             del trainer  # its RunnerState (device memory) before the next cell's
         compile_s = compile_seconds() - c0
         train_wall = time.perf_counter() - t0
-        steps_from = metric_rows[-1]['env_steps'] if metric_rows else 0
+        steps_from = logged[-1]["env_steps"] if logged else 0
         row.update(
             steps_from=steps_from,
             env_steps=trained,

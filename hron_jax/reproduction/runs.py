@@ -4,7 +4,7 @@ Layout: RUNS/<cell>/<run> is a train.py run dir (run_name: s<seed>, or s<seed>x<
 seeds) with eval.py's output in EVAL_DIR (eval_argv: the command; eval_json: its eval.json),
 evaluations in held-out houses beside it (held_out_dir), the random policy's evaluations under
 RUNS/_reference (reference_dir) and probe runs under RUNS/_probe/<cell>. ROOT is the repository
-root, where train.py and eval.py run (_rel: a path relative to it, for the report and messages).
+root, where train.py and eval.py run (repo_relative: a path relative to it, for the report and messages).
 
 The archive: the ARCHIVED files of every run, in git beside the report (archive_of(out));
 restore_runs copies the archived runs RUNS lacks into it, save_runs copies RUNS's into the archive.
@@ -33,7 +33,7 @@ from hron_jax.reproduction.grid import Cell, describe_config, settings
 ROOT = Path(REPO_ROOT).resolve()
 
 
-def _rel(p: Path) -> str:
+def repo_relative(p: Path) -> str:
     try:
         return Path(p).resolve().relative_to(ROOT).as_posix()
     except ValueError:
@@ -139,7 +139,7 @@ def save_runs(runs: Path, archive: Path) -> None:
 # ------------------------------------------------------------------------------------------------
 
 
-def _rows(run_dir: Path) -> list[dict]:
+def metric_rows(run_dir: Path) -> list[dict]:
     from hron_jax.run_dir import read_metrics
 
     return read_metrics(run_dir)
@@ -160,7 +160,7 @@ def num_seeds_of(run_dir: Path) -> int:
 
 def steps_per_second(run_dirs: list[Path]) -> float | None:
     """Median env steps/s (all seeds of a run together) over the logged chunks; compile excluded."""
-    rates = [r['steps_per_s'] for d in run_dirs for r in _rows(d) if r.get('steps_per_s')]
+    rates = [r['steps_per_s'] for d in run_dirs for r in metric_rows(d) if r.get('steps_per_s')]
     return float(np.median(rates)) if rates else None
 
 
@@ -185,7 +185,7 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
         e = json.loads(ev.read_text())
         s = e['summary']
         cfg = TrainConfig.from_dict(json.loads((d / 'config.json').read_text())['config'])
-        rows = _rows(d)
+        rows = metric_rows(d)
         run_seeds = []
         for i, (sr, spl) in enumerate(zip(s['success']['per_seed'], s['spl']['per_seed'])):
             seeds.append((cfg.seed + i, sr, spl))
