@@ -27,6 +27,7 @@ from hron_jax.reproduction.report import (
     _ours,
     attention_section,
     config_text,
+    estimate,
     generalisation_section,
     table_comparison,
 )
@@ -264,6 +265,24 @@ def test_ordering_disagreements():
         {'SG': 0.825, 'SG + TD ATTN': 0.825, 'x': 1.0}, {'SG': 0.997, 'SG + TD ATTN': 0.991}
     ) == [('SG', 'SG + TD ATTN', 0.825, 0.825, 0.997, 0.991)]
     assert ordering_sentence('SR', {'SG': 0.5}, {'SG': 0.6}) is None
+
+
+def test_a_cell_without_runs_is_costed_from_the_same_model_before_the_main_model(tmp_path):
+    runs = tmp_path / 'runs'
+    fake_run(runs / 'directed_rgbd' / 's0', 0, 0.5, 0.2, distractors=False, task='directed', model='rgbd')
+    main = runs / 'directed_rgbd_sg_attn_dist' / 's0'
+    fake_run(main, 0, 1.0, 0.8, task='directed')
+    rows = [json.loads(l) for l in (main / 'metrics.jsonl').read_text().splitlines()]
+    (main / 'metrics.jsonl').write_text(''.join(json.dumps({**r, 'steps_per_s': 40.0}) + '\n' for r in rows))
+    by_name = {c.name: c for c in GRID}
+    # RGB-D only with distractors: its own model's runs (128 env steps/s), not the main model's (40)
+    text, sec = estimate(by_name['directed_rgbd_dist'], runs, 3, 'cpu')
+    assert text.startswith('128 env steps/s (proxy: runs of directed_rgbd'), text
+    assert sec == 3 * 131_072 / 128
+    # SG with distractors has neither its own model's runs nor a probe: the main model's, same setting
+    text, sec = estimate(by_name['directed_rgbd_sg_dist'], runs, 1, 'cpu')
+    assert text.startswith('40 env steps/s (proxy: runs of directed_rgbd_sg_attn_dist'), text
+    assert sec == 131_072 / 40
 
 
 def test_plan_lists_every_cell(cli, tmp_path, capsys):

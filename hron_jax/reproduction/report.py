@@ -102,15 +102,16 @@ def estimate(
 ) -> tuple[str, float | None]:
     """(text, seconds): training cost of `seeds` seeds of a cell from measured env steps/s, from the
     first source that has a measurement: its own runs (in RUNS, else in `archive`, which --plan reads
-    without restoring it), its --probe, then (flagged as a proxy) the runs and the
-    probe of the main model on the same task (closest distractor / premap setting first), then the
-    exploratory main model's probe (the PPO update of the graph model dominates either way)."""
-    mains = sorted(
-        (c for c in GRID if c.task == cell.task and c.model == 'rgbd_sg_attn' and c != cell),
-        key=lambda c: (c.distractors != cell.distractors, c.premap != cell.premap),
+    without restoring it), its --probe, then (flagged as a proxy) the runs and the probe of the same
+    model on the same task in another distractor / premap setting, then of the main model on the same
+    task (closest setting first: the model sets the cost, graph-free RGB-D only trains ~3x faster),
+    then the exploratory main model's probe."""
+    proxies = sorted(
+        (c for c in GRID if c.task == cell.task and c.model in (cell.model, 'rgbd_sg_attn') and c != cell),
+        key=lambda c: (c.model != cell.model, c.distractors != cell.distractors, c.premap != cell.premap),
     )
     sources = [(cell, 'runs', 'its runs'), (cell, 'probe', '--probe')]
-    sources += [(m, kind, f'proxy: {kind} of {m.name}') for m in mains for kind in ('runs', 'probe')]
+    sources += [(m, kind, f'proxy: {kind} of {m.name}') for m in proxies for kind in ('runs', 'probe')]
     sources.append(
         (
             next(c for c in GRID if c.name == 'exploratory_rgbd_sg_attn'),
