@@ -120,21 +120,18 @@ def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int
     load_end = os.getloadavg()[0]
     eargv = eval_argv(out, episodes)
     t_eval = run_logged(eargv, out.parent / f's{seed}.eval.log')
-    (out / 'repro.json').write_text(
-        json.dumps(
-            dict(
-                train_argv=targv,
-                eval_argv=eargv,
-                train_wall_s=t_train + previous.get('train_wall_s', 0.0),
-                eval_wall_s=t_eval,
-                profile=profile,
-                machine=mach,
-                loadavg_training=[mach.get('loadavg', [load_end])[0], load_end],
-                finished=time.strftime('%Y-%m-%d %H:%M:%S'),
-            ),
-            indent=2,
-        )
-        + '\n'
+    write_json_file(
+        out / 'repro.json',
+        dict(
+            train_argv=targv,
+            eval_argv=eargv,
+            train_wall_s=t_train + previous.get('train_wall_s', 0.0),
+            eval_wall_s=t_eval,
+            profile=profile,
+            machine=mach,
+            loadavg_training=[mach.get('loadavg', [load_end])[0], load_end],
+            finished=time.strftime('%Y-%m-%d %H:%M:%S'),
+        ),
     )
     print(f'{cell.name} s{seed}: train {t_train:.0f} s, eval {t_eval:.0f} s', flush=True)
     run_held_out(cell, out, episodes)
@@ -167,17 +164,14 @@ def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
     wall = run_logged(argv, out.parent / f'{cell.name}.log')
     # The load average matters on a shared machine (measured: 17 vs 43 exploratory steps/s at load
     # ~7 vs ~1), so it is kept with the measurement.
-    (out / 'repro.json').write_text(
-        json.dumps(
-            dict(
-                train_argv=argv,
-                train_wall_s=wall,
-                machine=mach,
-                loadavg_end=[round(x, 2) for x in os.getloadavg()],
-            ),
-            indent=2,
-        )
-        + '\n'
+    write_json_file(
+        out / 'repro.json',
+        dict(
+            train_argv=argv,
+            train_wall_s=wall,
+            machine=mach,
+            loadavg_end=[round(x, 2) for x in os.getloadavg()],
+        ),
     )
     print(f'probe {cell.name}: {steps_per_second([out])} steps/s, process {wall:.0f} s', flush=True)
 
@@ -252,18 +246,15 @@ def attention_figures(runs: Path, figdir: Path, episodes: int = 8, max_steps: in
         ):
             fig.savefig(figdir / f'{name}_{kind}.png', dpi=90, bbox_inches='tight')
         summary = {label: A.summary(r) for label, r in recs.items()}
-        (run_dir / 'attention_summary.json').write_text(
-            json.dumps(
-                dict(
-                    run_dir=repo_relative(run_dir),
-                    step=run.step,
-                    episodes=episodes,
-                    max_steps=max_steps,
-                    summary=summary,
-                ),
-                indent=2,
-            )
-            + '\n'
+        write_json_file(
+            run_dir / 'attention_summary.json',
+            dict(
+                run_dir=repo_relative(run_dir),
+                step=run.step,
+                episodes=episodes,
+                max_steps=max_steps,
+                summary=summary,
+            ),
         )
         print(f'attention: {name} in {time.perf_counter() - t:.0f} s', flush=True)
 
@@ -515,6 +506,8 @@ def run_cells_in_process(
 
 
 def write_json_file(path: Path, obj) -> None:
+    """run_dir.write_json (atomic, indented), imported here: run_dir imports JAX, and --plan runs
+    without it."""
     from hron_jax.run_dir import write_json
 
     write_json(path, obj)
