@@ -286,7 +286,8 @@ def test_a_cell_without_runs_is_costed_from_the_same_model_before_the_main_model
 
 
 def test_plan_lists_every_cell(cli, tmp_path, capsys):
-    assert cli.main(['--plan', '--runs', str(tmp_path), '--tables', '1', '2', '3']) == 0
+    report = tmp_path / 'report.md'  # its run archive is empty, unlike docs/reproduction's
+    assert cli.main(['--plan', '--runs', str(tmp_path), '--out', str(report), '--tables', '1', '2', '3']) == 0
     text = capsys.readouterr().out
     for cell in GRID:
         assert cell.name in text
@@ -295,6 +296,16 @@ def test_plan_lists_every_cell(cli, tmp_path, capsys):
         'python train.py --task directed --model rgbd --seed 2 --distractors --total-steps 131072 '
         '--no-progress'
     ) in text
+    # no runs and no probes: nothing to cost, and the total says so instead of '0 s'
+    assert text.splitlines()[-1] == (
+        f'estimated training time: {len(GRID)} cell(s) left to train not measured '
+        '(compilation and evaluation excluded)'
+    )
+    assert cli.plan_total(3600.0, 2, 1) == (
+        'estimated training time: 1.0 h for 2 cell(s) left to train; 1 cell(s) left to train not measured '
+        '(compilation and evaluation excluded)'
+    )
+    assert cli.plan_total(0.0, 0, 0) == 'nothing left to train'
 
 
 def test_generalisation_section_reads_held_out_evals(tmp_path):

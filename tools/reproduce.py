@@ -58,6 +58,17 @@ from hron_jax.reproduction.runs import (  # noqa: E402
 )
 
 
+def plan_total(seconds: float, measured: int, unmeasured: int) -> str:
+    """The last line of `--plan`: the training time of the cells left to train that have a cost
+    estimate, and how many have none."""
+    if not measured + unmeasured:
+        return 'nothing left to train'
+    parts = [f'{fmt_duration(seconds)} for {measured} cell(s) left to train'] if measured else []
+    if unmeasured:
+        parts.append(f'{unmeasured} cell(s) left to train not measured')
+    return 'estimated training time: ' + '; '.join(parts) + ' (compilation and evaluation excluded)'
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
@@ -139,7 +150,7 @@ def main(argv=None) -> int:
         return 0
     if a.plan:
         print(f'profile {a.profile}: {PROFILE_TEXT[a.profile]}')
-        total = 0.0
+        total, measured, unmeasured = 0.0, 0, 0
         for c in cells:
             done = {d.name: d for root in (archive_of(out), runs) for d in cell_runs(root, c) if eval_json(d)}
             n_done = sum(map(num_seeds_of, done.values()))
@@ -147,6 +158,8 @@ def main(argv=None) -> int:
             to_train = max(a.seeds - n_done, 0)
             est, sec = estimate(c, runs, to_train, prof, archive_of(out))
             total += sec or 0.0
+            if to_train:
+                measured, unmeasured = measured + (sec is not None), unmeasured + (sec is None)
             todo = f'{to_train} to train: {est}' if to_train else 'nothing to train'
             print(f'[Table {c.table}] {c.name:34s} {n_done}/{a.seeds} seeds evaluated; {todo}')
             if in_process:  # one run, the seeds vmapped; this process runs what these commands do
@@ -169,10 +182,7 @@ def main(argv=None) -> int:
                     + ' && '
                     + shlex.join(eval_argv(d, a.episodes or EPISODES[c.task]))
                 )
-        print(
-            'estimated training time of the seeds left to train in the measured cells: '
-            f'{fmt_duration(total)} (compilation and evaluation excluded)'
-        )
+        print(plan_total(total, measured, unmeasured))
         return 0
     if a.attention:
         attention_figures(runs, out.parent / 'reproduction')
