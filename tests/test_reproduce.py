@@ -301,11 +301,11 @@ def test_plan_lists_every_cell(cli, tmp_path, capsys):
         f'estimated training time: {len(GRID)} cell(s) left to train not measured '
         '(compilation and evaluation excluded)'
     )
-    assert cli.plan_total(3600.0, 2, 1) == (
+    assert cli.plan_total([1800.0, None, 1800.0]) == (
         'estimated training time: 1.0 h for 2 cell(s) left to train; 1 cell(s) left to train not measured '
         '(compilation and evaluation excluded)'
     )
-    assert cli.plan_total(0.0, 0, 0) == 'nothing left to train'
+    assert cli.plan_total([]) == 'nothing left to train'
 
 
 def test_generalisation_section_reads_held_out_evals(tmp_path):

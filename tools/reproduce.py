@@ -58,12 +58,14 @@ from hron_jax.reproduction.runs import (  # noqa: E402
 )
 
 
-def plan_total(seconds: float, measured: int, unmeasured: int) -> str:
-    """The last line of `--plan`: the training time of the cells left to train that have a cost
-    estimate, and how many have none."""
-    if not measured + unmeasured:
+def plan_total(costs: list[float | None]) -> str:
+    """The last line of `--plan`, from the training seconds of each cell left to train (None: no
+    estimate): the total over the cells that have one, and how many have none."""
+    if not costs:
         return 'nothing left to train'
-    parts = [f'{fmt_duration(seconds)} for {measured} cell(s) left to train'] if measured else []
+    measured = [sec for sec in costs if sec is not None]
+    unmeasured = len(costs) - len(measured)
+    parts = [f'{fmt_duration(sum(measured))} for {len(measured)} cell(s) left to train'] if measured else []
     if unmeasured:
         parts.append(f'{unmeasured} cell(s) left to train not measured')
     return 'estimated training time: ' + '; '.join(parts) + ' (compilation and evaluation excluded)'
@@ -150,17 +152,17 @@ def main(argv=None) -> int:
         return 0
     if a.plan:
         print(f'profile {a.profile}: {PROFILE_TEXT[a.profile]}')
-        total, measured, unmeasured = 0.0, 0, 0
+        archive, costs = archive_of(out), []  # costs: training seconds (or None) of each cell left to train
         for c in cells:
-            done = {d.name: d for root in (archive_of(out), runs) for d in cell_runs(root, c) if eval_json(d)}
+            done = {d.name: d for root in (archive, runs) for d in cell_runs(root, c) if eval_json(d)}
             n_done = sum(map(num_seeds_of, done.values()))
             prof = a.profile if PROFILES[a.profile][c.task] is not None else 'paper'
             to_train = max(a.seeds - n_done, 0)
-            est, sec = estimate(c, runs, to_train, prof, archive_of(out))
-            total += sec or 0.0
+            todo = 'nothing to train'
             if to_train:
-                measured, unmeasured = measured + (sec is not None), unmeasured + (sec is None)
-            todo = f'{to_train} to train: {est}' if to_train else 'nothing to train'
+                est, sec = estimate(c, runs, to_train, prof, archive)
+                costs.append(sec)
+                todo = f'{to_train} to train: {est}'
             print(f'[Table {c.table}] {c.name:34s} {n_done}/{a.seeds} seeds evaluated; {todo}')
             if in_process:  # one run, the seeds vmapped; this process runs what these commands do
                 cfg = in_process_config(prof, c, a.seeds, a.total_steps)
@@ -182,7 +184,7 @@ def main(argv=None) -> int:
                     + ' && '
                     + shlex.join(eval_argv(d, a.episodes or EPISODES[c.task]))
                 )
-        print(plan_total(total, measured, unmeasured))
+        print(plan_total(costs))
         return 0
     if a.attention:
         attention_figures(runs, out.parent / 'reproduction')
