@@ -229,10 +229,12 @@ def main_cell(task: str) -> Cell:
     return next(c for c in GRID if c.task == task and c.model == 'rgbd_sg_attn')
 
 
-def settings_text(cfg) -> str:
+def settings_text(cfg, graph: bool = True) -> str:
     """describe_config without the preset (for text that has already said which preset) and the
-    physics (a profile leaves it to the machine: `auto`; each run's own text names it)."""
-    return '; '.join(v for k, v in settings(cfg).items() if k not in ('preset', 'physics'))
+    physics (a profile leaves it to the machine: `auto`; each run's own text names it); graph=False
+    also without the graph network (text about rows of several models)."""
+    drop = ('preset', 'physics') + (() if graph else ('graph',))
+    return '; '.join(v for k, v in settings(cfg).items() if k not in drop)
 
 
 def notes(table: int) -> list[str]:
@@ -264,7 +266,8 @@ def notes(table: int) -> list[str]:
         c = cpu['directed']
         return [
             "Notes. (1) Budget and settings: the Config column; rows of profile `cpu` (not the paper's "
-            f'settings) ran {settings_text(c)}, i.e. {c.ppo.num_updates} PPO '
+            f"settings) ran {settings_text(c, graph=False)}, the graph models with {settings(c)['graph']}; "
+            f'that is {c.ppo.num_updates} PPO '
             f'updates: with episodes of up to 500 steps each env finishes only a few episodes '
             'during training, so these rows show early learning, not converged policies, and not '
             "under the paper's settings; those and the paper's budget are the `paper` profile "
@@ -276,8 +279,9 @@ def notes(table: int) -> list[str]:
     if table == 3:
         c = cpu['exploratory']
         return [
-            "Notes. (1) Budget and settings: profile `cpu` rows (not the paper's settings) ran "
-            f'{settings_text(c)}. (2) Estimates for cells without runs use, in order, the '
+            "Notes. (1) Budget and settings: the Config column; rows of profile `cpu` (not the paper's "
+            f"settings) ran {settings_text(c, graph=False)}, the HGT models with {settings(c)['graph']}. "
+            '(2) Estimates for cells without runs use, in order, the '
             "cell's own runs, its --probe, or (flagged as a proxy) the main model of the same task: "
             'graph-free models (RGB-D only, RGB-D + MM) skip the HGT and will be faster.'
         ]
