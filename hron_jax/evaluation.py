@@ -47,7 +47,7 @@ from hron_jax.errors import CheckpointError, UsageError
 from hron_jax.rollout import episode_ends, random_policy, unroll
 from hron_jax.run_config import DEFAULT_TASK, build_env, build_network, run_label
 from hron_jax.run_dir import load_config, restore_params, write_json
-from hron_jax.training import FAST_COMPILE
+from hron_jax.training import FAST_COMPILE, compile_lowered
 
 POLICIES = ('trained', 'oracle', 'random')
 
@@ -111,7 +111,7 @@ def evaluate(
 
     run = jax.jit(jax.vmap(one_seed, in_axes=(None if params is None else 0, 0)))
     t0 = time.perf_counter()
-    compiled = run.lower(params, policy_keys).compile(compiler_options)
+    compiled = compile_lowered(run.lower(params, policy_keys), compiler_options)
     t1 = time.perf_counter()
     states, traj = jax.device_get(compiled(params, policy_keys))
     t2 = time.perf_counter()

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -69,7 +70,7 @@ class Programs(NamedTuple):
         9.8 / 8.7 s (two runs each, 2-core Xeon), run ~0.5 s either way. Its float rounding
         differs (initial params within 3e-6), the same way on every run of a config."""
         if 'init' not in self.compiled:
-            self.compiled['init'] = self.init.lower(keys).compile(dict(FAST_COMPILE))
+            self.compiled['init'] = compile_lowered(self.init.lower(keys), FAST_COMPILE)
         return self.compiled['init'](keys)
 
     def compiled_chunk(self, n: int):
@@ -77,7 +78,7 @@ class Programs(NamedTuple):
         if n in self.compiled:
             return self.compiled[n], 0.0
         t = time.perf_counter()
-        self.compiled[n] = self.chunk.lower(self.abstract, n).compile(self.compiler_options)
+        self.compiled[n] = compile_lowered(self.chunk.lower(self.abstract, n), self.compiler_options)
         return self.compiled[n], time.perf_counter() - t
 
 
@@ -94,6 +95,23 @@ FAST_COMPILE = {
     'xla_llvm_disable_expensive_passes': True,
     'xla_cpu_use_fusion_emitters': False,
 }
+
+
+def compile_lowered(lowered, options: dict | None):
+    """lowered.compile(options) without the options this XLA does not know: XLA drops flags
+    between releases (xla_cpu_use_fusion_emitters is gone from jax 0.11's), and an unknown one
+    fails the whole compile. Options are read before any compiling, so a retry costs nothing."""
+    import jax
+
+    options = dict(options or {})
+    while True:
+        try:
+            return lowered.compile(options)
+        except jax.errors.JaxRuntimeError as e:
+            unknown = re.search(r"No such compile option: '(\w+)'", str(e))
+            if unknown is None or unknown.group(1) not in options:
+                raise
+            del options[unknown.group(1)]
 
 
 def make_mesh(num_envs: int, devices=None):

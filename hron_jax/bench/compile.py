@@ -90,7 +90,7 @@ def bench_compile(config, devices=None):
     `config`, compiled for `devices` (default: this machine's; `gpu_target_devices`)."""
     import jax
 
-    from ..training import FAST_COMPILE, programs
+    from ..training import FAST_COMPILE, compile_lowered, programs
 
     jax.config.update("jax_enable_compilation_cache", False)
     num_envs = config.ppo.num_envs
@@ -125,9 +125,9 @@ def bench_compile(config, devices=None):
     for name, fn, args in stages:
         t = time.perf_counter()
         if fn is None:
-            compiled = prog.chunk.lower(prog.abstract, 1).compile(options)
+            compiled = compile_lowered(prog.chunk.lower(prog.abstract, 1), options)
         else:  # init as the Trainer compiles it (Programs.initialize)
-            compiled = fn.lower(*placed(args)).compile(dict(FAST_COMPILE) if name == "init" else options)
+            compiled = compile_lowered(fn.lower(*placed(args)), FAST_COMPILE if name == "init" else options)
         seconds = time.perf_counter() - t
         text = compiled.as_text() or ""
         yield dict(stage=name, compile_s=seconds, hlo_mb=len(text) / 1e6, instructions=hlo_instructions(text))
@@ -283,11 +283,11 @@ def run(a: argparse.Namespace) -> None:
     )
     stream_table(HEADER, bench_compile(config, devices), format_row)
     if a.by_source:
-        from ..training import programs
+        from ..training import compile_lowered, programs
 
         deep_tracebacks()
         prog = programs(config, devices)
-        text = prog.chunk.lower(prog.abstract, 1).compile(prog.compiler_options).as_text() or ""
+        text = compile_lowered(prog.chunk.lower(prog.abstract, 1), prog.compiler_options).as_text() or ""
         counts = hlo_by_source(text)
         total = sum(counts.values())
         print("\n| source (innermost hron_jax module) | HLO instructions of the chunk | share |")
