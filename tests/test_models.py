@@ -34,6 +34,7 @@ from hron_jax.models import (
     mean_pool,
     task_driven_pool,
 )
+from hron_jax.models.gnn import spread_dead
 from hron_jax.models.pyg_compat import gcn_params_from_pyg, hgt_params_from_pyg
 from hron_jax.models.word_vectors import load_category_vectors
 from hron_jax.scenes import vocabulary
@@ -181,6 +182,23 @@ def test_padding_and_dead_nodes_do_not_change_live_outputs(kind):
         np.testing.assert_allclose(h2[rows], d["out2"], atol=TOL, rtol=0)
         dead = ~gp["mask"]
         assert (h2[dead] == 0).all()
+
+
+def test_spread_dead_keeps_live_indices_and_spreads_dead_ones_in_range():
+    """Dead edges get rows in [0, rows) from their position, a bounded number per row (no shared
+    row for the GPU's atomics to queue on); live edges keep theirs. Per-graph row counts broadcast."""
+    rng = np.random.default_rng(0)
+    b, e = 3, 50
+    index = rng.integers(0, 7, (b, e)).astype(np.int32)
+    live = rng.random((b, e)) < 0.3
+    rows = np.array([7, 1, 4], np.int32)[:, None]
+    out = np.asarray(spread_dead(jnp.asarray(index), jnp.asarray(live), jnp.asarray(rows)))
+    np.testing.assert_array_equal(out[live], index[live])
+    for g in range(b):
+        dead = out[g][~live[g]]
+        assert ((0 <= dead) & (dead < rows[g, 0])).all()
+        assert np.bincount(dead).max() <= -(-e // rows[g, 0])
+    assert len(np.unique(out[0][~live[0]])) == 7  # all rows used when there are enough dead edges
 
 
 @pytest.mark.parametrize("kind", ["hgt", "gcn"])

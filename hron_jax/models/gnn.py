@@ -75,6 +75,19 @@ def live_edges(node_mask, senders, receivers, edge_mask):
     return edge_mask & node_mask[senders] & node_mask[receivers]
 
 
+def spread_dead(index, live, num_rows):
+    """index [..., E] where live, else the edge's position mod num_rows (broadcastable, >= 1).
+
+    A dead edge's values are masked, but it still takes part in every scatter (the message sum,
+    the softmax's max and sum, the gathers' gradients) with a zero. With every dead edge on one
+    row, those zero-adds are atomics on one address on a GPU, and early in an episode most edges
+    are dead (the builder points them at node 0). Measured on one H200 (`bench profile`,
+    exploratory main model, 4096 envs x 16 steps, 32x32): 9.58 -> 3.29 s per PPO update, the HGT
+    layers 8.17 -> 1.92 s. Sums are unchanged (x + 0.0 == x).
+    """
+    return jnp.where(live, index, jnp.arange(index.shape[-1], dtype=index.dtype) % num_rows)
+
+
 def edge_relations(node_type, senders, receivers, edge_type):
     """i32[(B,) E]: HGT relation-triple index of every edge (graph_types.RELATION_INDEX), -1 if illegal.
 
@@ -280,7 +293,7 @@ def _hgt(
         blk_type,
     )  # [nb, 2, H, D, S*D]
     kvt = jnp.einsum("bcjhd,bjhde->bjhce", kv, w)  # [nb, 2, H, C, S*D]
-    ps, pd = pos[senders], pos[receivers]
+    ps, pd = pos[spread_dead(senders, live, n)], pos[spread_dead(receivers, live, n)]
     # Row of (block, k|v, head, c) in kvt for each edge and head, then its slot's D columns.
     base = ((ps // c)[:, None] * (2 * h) + jnp.arange(h, dtype=ps.dtype)) * c + (ps % c)[:, None]
     slot = jnp.asarray(rel_slot)[rel][:, None]
@@ -330,6 +343,7 @@ def _hgt_single(
     k, q, v = (kqv[:, i * f : (i + 1) * f].reshape(n, h, d) for i in range(3))
     k_all = jnp.einsum("nhd,rhde->nrhe", k, params["k_rel"]).reshape(n * r, h, d)
     v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
+    senders, receivers = spread_dead(senders, live, n), spread_dead(receivers, live, n)
     row = senders * r + rel
     a, alpha = _attend(
         params["p_rel"], q[receivers], k_all[row], v_all[row], rel, live, receivers, n, softmax
@@ -429,13 +443,12 @@ def _hgt_layout(
     st, dt = jnp.clip(row_t[senders], 0, t - 1), jnp.clip(row_t[receivers], 0, t - 1)
     live, rel = _relation_edges(live, relation.reshape(-1), st.reshape(-1), r, rel_src)
     count, start = jnp.asarray(counts, senders.dtype), jnp.asarray(starts, senders.dtype)
-    # Rows of dead edges are 0: they index nothing outside the tables (their values are masked).
-    src = jnp.where(live, (graph * count[st] + senders - start[st]).reshape(-1), 0)
-    dst = jnp.where(
-        live,
-        (jnp.asarray(q_off, senders.dtype)[dt] + graph * count[dt] + receivers - start[dt]).reshape(-1),
-        0,
-    )
+    # A dead edge takes a row of its graph and type (spread_dead): in range, not one shared row.
+    live_b = live.reshape(b, e)
+    local_src = spread_dead(senders - start[st], live_b, jnp.maximum(count[st], 1))
+    local_dst = spread_dead(receivers - start[dt], live_b, jnp.maximum(count[dt], 1))
+    src = (graph * count[st] + local_src).reshape(-1)
+    dst = (jnp.asarray(q_off, senders.dtype)[dt] + graph * count[dt] + local_dst).reshape(-1)
     st = st.reshape(-1)
     n_src = jnp.asarray(rows, senders.dtype)[st][:, None]
     slot = jnp.asarray(rel_slot)[rel][:, None]
@@ -633,6 +646,7 @@ def _gcn(hx, bias, node_mask, senders, receivers, edge_mask):
     """GCNConv on one graph (see the class), from its transformed features hx = x W [N, F]."""
     n = hx.shape[0]
     live = live_edges(node_mask, senders, receivers, edge_mask) & (senders != receivers)
+    senders, receivers = spread_dead(senders, live, n), spread_dead(receivers, live, n)
     w = live.astype(jnp.float32)
     loop = node_mask.astype(jnp.float32)
     deg = jax.ops.segment_sum(w, receivers, n) + loop
