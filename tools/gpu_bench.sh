@@ -30,7 +30,8 @@
 #       profilebf profile with gnn_dtype=bfloat16: where the update's time goes then
 #       compile   bench compile at 1024 envs: compile seconds and HLO size per stage on this GPU
 #       trainpy   train.py as a user runs it (1024 envs x 16 steps, 8 minibatches, 2 updates,
-#                 no compile cache): init / chunk compile seconds and env steps/s from its log
+#                 no compile cache): init / chunk compile seconds from its log, env steps/s in
+#                 $OUT/trainpy_metrics.csv
 #       evalpy    eval.py on trainpy's run as a user runs it (20 episodes, no compile cache): its
 #                 logged compile and play seconds (run after trainpy, which leaves the run)
 #       trainpy-na  trainpy with XLA:GPU autotuning off (--xla_gpu_autotune_level=0): its share of
@@ -78,7 +79,7 @@ main() {
         --image-size 32 --repeats 2 ;;
       model) step "$(box 120)" python3 -m hron_jax.bench model --variants rgbd_sg_attn --batch 8192 \
         --reps 10 --hgt-layouts sliced blocks ;;
-      train32) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
+      train32) step "$(box 240)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 ;;
       train32bf) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 --model-option gnn_dtype=bfloat16 ;;
@@ -90,7 +91,8 @@ main() {
         --image-size 128 --repeats 2 --model-option conv=patches ;;
       compile) step "$(box 200)" python3 -m hron_jax.bench compile --num-envs 1024 --num-steps 16 \
         --minibatches 8 --env-option sim.physics=jax ;;
-      trainpy) step "$(box 220)" python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run ;;
+      trainpy) step "$(box 220)" python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run
+        cp /tmp/gpu_bench_run/metrics.csv "$OUT/trainpy_metrics.csv" 2>/dev/null ;;
       evalpy) step "$(box 150)" python3 eval.py /tmp/gpu_bench_run --episodes 20 --plots 0 \
         --compile-cache none ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
