@@ -14,8 +14,8 @@ that of this setting.
 
 Prints: the task and sizes, the wall ms per update, then the Markdown table | source | ms per
 update | share of op time | ops |, most expensive first (on a GPU the gap between the op time and
-the wall time is time the device waited: launches, host work, syncs), then the 15 most expensive
-ops with the end of their JAX name stacks. The raw trace stays in --trace-dir when given
+the wall time is time the device waited: launches, host work, syncs), then the --top (default
+15) most expensive ops with the end of their JAX name stacks. The raw trace stays in --trace-dir when given
 (TensorBoard / Perfetto).
 """
 
@@ -101,6 +101,7 @@ def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=p
 def add_args(p: argparse.ArgumentParser) -> None:
     add_train_args(p, single_num_envs=True)
     p.add_argument("--trace-dir", help="keep the raw trace here (default: a temporary directory)")
+    p.add_argument("--top", type=int, default=15, help="how many of the most expensive ops to list")
 
 
 def run(a: argparse.Namespace) -> None:
@@ -123,6 +124,6 @@ def run(a: argparse.Namespace) -> None:
     print(f"| all ops | {1e3 * total:.2f} | 100 % | {sum(n for *_, n in r['rows'])} |")
     print("\n| op (most expensive) | ms per update | source | JAX name stack (its end) |")
     print("| --- | ---: | --- | --- |")
-    for name, t, source, op_name in r["ops"][:15]:
+    for name, t, source, op_name in r["ops"][: a.top]:
         print(f"| {name} | {1e3 * t:.2f} | {source} | {op_name[-90:]} |")
     print(f"\ntrace: {r['trace']}")
