@@ -82,8 +82,9 @@ def test_ops_without_our_frames_name_their_library(deep_stacks):
 
 
 def gpu_script_commands(tmp_path, *script, **env) -> list[list[str]]:
-    """The python3 commands a prepared GPU-lease script runs (less its setup's own), recorded by a
-    stand-in python3 first on PATH that writes its arguments and exits: every step "runs" at once."""
+    """The python3 commands a prepared GPU-lease script runs (less its setup's own and its inline
+    helpers: -c and stdin scripts), recorded by a stand-in python3 first on PATH that writes its
+    arguments and exits: every step "runs" at once."""
     bin_dir = tmp_path / 'bin'
     bin_dir.mkdir()
     stub = bin_dir / 'python3'
@@ -97,7 +98,7 @@ def gpu_script_commands(tmp_path, *script, **env) -> list[list[str]]:
     env = dict(os.environ, PATH=path, CALLS=str(calls), OUT=str(tmp_path / 'out'), **env)
     subprocess.run(['bash', *script], cwd=REPO_ROOT, env=env, check=True, capture_output=True)
     argvs = [json.loads(line) for line in calls.read_text().splitlines()]
-    return [a for a in argvs if a[:1] != ['-c'] and a[:2] != ['-m', 'pip']]
+    return [a for a in argvs if a[:1] not in (['-c'], ['-']) and a[:2] != ['-m', 'pip']]
 
 
 def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
@@ -106,7 +107,7 @@ def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
     train = [a[1:] for a in runs if a[:1] == ['train.py']]
     evals = [a[1:] for a in runs if a[:1] == ['eval.py']]
     assert len(bench) + len(train) + len(evals) == len(runs), runs
-    assert len(bench) == 13 and len(train) == 2 and len(evals) == 1  # the stages of the default list
+    assert len(bench) == 13 and len(train) == 6 and len(evals) == 1  # the stages of the default list
     for argv in evals:
         args = eval_parser().parse_args(argv)
         assert args.run == '/tmp/gpu_bench_run' and args.episodes == 20, argv

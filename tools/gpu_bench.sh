@@ -36,6 +36,9 @@
 #                 $OUT/trainpy_metrics.csv
 #       evalpy    eval.py on trainpy's run as a user runs it (20 episodes, no compile cache): its
 #                 logged compile and play seconds (run after trainpy, which leaves the run)
+#       determinism  trainpy twice (the second from the compile cache) and whether both logged the
+#                 same numbers; then the same with --xla_gpu_deterministic_ops=true (XLA:GPU's float
+#                 scatter-adds are atomics, in no fixed order): its env steps/s in the runs' logs
 #       trainpy-na  trainpy with XLA:GPU autotuning off (--xla_gpu_autotune_level=0): its share of
 #                 the compile
 #
@@ -47,7 +50,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env env-nocull profile profilep model train32 train32bf profilebf train128 train128p compile trainpy evalpy trainpy-na env-warp train32w)
+((${#STAGES[@]})) || STAGES=(env env-nocull profile profilep model train32 train32bf profilebf train128 train128p compile trainpy evalpy determinism trainpy-na env-warp train32w)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -57,6 +60,17 @@ source tools/gpu_lib.sh
 box() {
   local l=$(($(left) - 15))
   echo $(($1 < l ? $1 : l))
+}
+
+# same_metrics A B: whether two runs logged the same numbers (metrics.csv without its timings).
+same_metrics() {
+  python3 - "$1/metrics.csv" "$2/metrics.csv" <<'PY'
+import csv, sys
+a, b = ([{k: v for k, v in r.items() if k not in ("wall_time", "steps_per_s")} for r in csv.DictReader(open(p))]
+        for p in sys.argv[1:])
+diff = sorted({k for ra, rb in zip(a, b) for k in ra if ra[k] != rb[k]})
+print(f"== same metrics: {len(a) == len(b) and not diff} ({len(a)} / {len(b)} rows; differ: {diff or 'none'})")
+PY
 }
 
 main() {
@@ -99,9 +113,18 @@ main() {
         cp /tmp/gpu_bench_run/metrics.csv "$OUT/trainpy_metrics.csv" 2>/dev/null ;;
       evalpy) step "$(box 150)" python3 eval.py /tmp/gpu_bench_run --episodes 20 --plots 0 \
         --compile-cache none ;;
+      determinism)
+        for flags in "" "--xla_gpu_deterministic_ops=true"; do
+          for i in 1 2; do
+            step "$(box 150)" env XLA_FLAGS="${XLA_FLAGS:-} $flags" python3 train.py "${user_run[@]}" \
+              --compile-cache /tmp/gpu_det_cache --out "/tmp/gpu_det${flags:+_det}_$i"
+          done
+          echo "== XLA flags '$flags'"
+          same_metrics "/tmp/gpu_det${flags:+_det}_1" "/tmp/gpu_det${flags:+_det}_2"
+        done ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
         train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;
-      *) echo "unknown stage $s (valid: env env-nocull env-warp profile profilep model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy trainpy-na)" ;;
+      *) echo "unknown stage $s (valid: env env-nocull env-warp profile profilep model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy determinism trainpy-na)" ;;
     esac
   done
 }
