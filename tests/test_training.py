@@ -813,3 +813,20 @@ def test_learning_curve_points_pool_episodes_per_seed():
     joined = {r['env_steps']: r for r in curve_rows([rows, other], ('success',), min_episodes=4)}
     assert joined[300]['success'] == pytest.approx((0.8 + 0.25 + 0.5) / 3)
     assert joined[400]['success'] == pytest.approx(0.525)
+
+
+def test_compile_drops_only_the_options_this_xla_does_not_know():
+    """XLA drops flags between releases (jax 0.11's has no xla_cpu_use_fusion_emitters): an unknown
+    option is left out and the program still compiles and computes; any other bad option still
+    fails, naming itself."""
+    import jax.numpy as jnp
+
+    from hron_jax.training import FAST_COMPILE, compile_lowered
+
+    lowered = jax.jit(lambda x: 2.0 * x + 1.0).lower(jnp.arange(3.0))
+    options = dict(FAST_COMPILE, xla_option_no_release_has=True)
+    out = compile_lowered(lowered, options)(jnp.arange(3.0))
+    np.testing.assert_array_equal(np.asarray(out), [1.0, 3.0, 5.0])
+    assert 'xla_option_no_release_has' in options  # the caller's dict is left as it was
+    with pytest.raises(jax.errors.JaxRuntimeError, match='xla_backend_optimization_level'):
+        compile_lowered(lowered, {'xla_backend_optimization_level': 'abc'})

@@ -15,8 +15,8 @@ that of this setting.
 Prints: the task and sizes, the wall ms per update, then the Markdown table | source | ms per
 update | share of op time | ops |, most expensive first (on a GPU the gap between the op time and
 the wall time is time the device waited: launches, host work, syncs), then the --top (default
-15) most expensive ops with the end of their JAX name stacks. The raw trace stays in --trace-dir when given
-(TensorBoard / Perfetto).
+15) most expensive ops with the end of their JAX name stacks. The raw trace stays in --trace-dir
+when given (TensorBoard / Perfetto).
 """
 
 from __future__ import annotations
