@@ -62,14 +62,15 @@ box() {
   echo $(($1 < l ? $1 : l))
 }
 
-# same_metrics A B: whether two runs logged the same numbers (metrics.csv without its timings).
+# same_metrics A B: whether two runs logged the same numbers (their metrics log less its timings).
 same_metrics() {
-  python3 - "$1/metrics.csv" "$2/metrics.csv" <<'PY'
-import csv, sys
-a, b = ([{k: v for k, v in r.items() if k not in ("wall_time", "steps_per_s")} for r in csv.DictReader(open(p))]
-        for p in sys.argv[1:])
+  python3 - "$1" "$2" <<'PY'
+import sys
+from hron_jax.run_dir import read_metrics
+a, b = ([{k: v for k, v in r.items() if k not in ("wall_time", "steps_per_s")} for r in read_metrics(d)]
+        for d in sys.argv[1:])
 diff = sorted({k for ra, rb in zip(a, b) for k in ra if ra[k] != rb[k]})
-print(f"== same metrics: {len(a) == len(b) and not diff} ({len(a)} / {len(b)} rows; differ: {diff or 'none'})")
+print(f"== same metrics: {bool(a) and len(a) == len(b) and not diff} ({len(a)} / {len(b)} rows; differ: {diff or 'none'})")
 PY
 }
 
