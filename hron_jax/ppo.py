@@ -2,6 +2,7 @@
 
     ppo = make_ppo(config, env, network)
     runner = ppo.init(rng)                                   # params, optimiser, envs, rng
+    params = ppo.init_params(rng)                            # init(rng)'s params alone
     runner, metrics = ppo.update_chunk(runner, n_updates)    # n_updates static; pure, jittable
     runner, metrics = ppo.train(rng)                         # = init + config.num_updates updates
     train = make_train(config, env, network)                 # same as ppo.train
@@ -152,7 +153,8 @@ class Transition(NamedTuple):
 
 
 class PPO(NamedTuple):
-    init: Callable  # rng -> RunnerState
+    init: Callable  # (rng, params=None) -> RunnerState (params None: init_params(rng))
+    init_params: Callable  # rng -> the network parameters of init(rng)
     update_chunk: Callable  # (RunnerState, n_updates: static int) -> (RunnerState, metrics)
     train: Callable  # rng -> (RunnerState, metrics)
     evaluate: Callable  # (params, rng, num_steps: static int, greedy: static bool) -> metrics
@@ -217,12 +219,21 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
     # initialisers call LAPACK QR, and jaxlib's batched CPU QR kernel can deadlock when several run
     # at once on a small thread pool (seen on 2 cores: jax.vmap(train) hung forever). Init is
     # cheap, so the loop costs nothing and gives bitwise the same params as a single-seed run.
-    init_params = jax.custom_batching.sequential_vmap(network.init)
+    network_init = jax.custom_batching.sequential_vmap(network.init)
 
-    def init(rng) -> RunnerState:
-        rng, k_params, k_env = jax.random.split(rng, 3)
+    def init_params(rng):
+        """The network parameters of init(rng). Parameter initialisers read only the shapes of the
+        observation, so one zero observation stands for the envs' (same values): this needs no
+        env, and train.py runs it as its own program on the host CPU (training.Programs)."""
+        _, k_params, k_env = jax.random.split(rng, 3)
+        obs = jax.eval_shape(v_reset, jax.random.split(k_env, config.num_envs)).obs
+        return network_init(k_params, jax.tree.map(lambda a: jnp.zeros((1,) + a.shape[1:], a.dtype), obs))
+
+    def init(rng, params=None) -> RunnerState:
+        """The runner of seed rng: fresh envs, init_params(rng) (or the given params), Adam at 0."""
+        params = init_params(rng) if params is None else params
+        rng, _, k_env = jax.random.split(rng, 3)
         env_state = v_reset(jax.random.split(k_env, config.num_envs))
-        params = init_params(k_params, env_state.obs)
         return RunnerState(
             params=params,
             opt_state=tx.init(params),
@@ -397,7 +408,13 @@ def make_ppo(config: PPOConfig, env, network) -> PPO:
         return _masked_episode_means(traj.metrics)
 
     return PPO(
-        init=init, update_chunk=update_chunk, train=train, evaluate=evaluate, rollout=rollout, config=config
+        init=init,
+        init_params=init_params,
+        update_chunk=update_chunk,
+        train=train,
+        evaluate=evaluate,
+        rollout=rollout,
+        config=config,
     )
 
 

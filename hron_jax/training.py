@@ -55,23 +55,42 @@ class Programs(NamedTuple):
     network: Any
     ppo: Any
     mesh: Any
-    init: Callable  # jitted: keys u32[S, 2] -> RunnerState [S, ...]
+    init_params: Callable  # jitted for the host CPU: keys u32[S, 2] -> params [S, ...]
+    init: Callable  # jitted: (keys u32[S, 2], params [S, ...]) -> RunnerState [S, ...]
     chunk: Callable  # jitted: (runner, n static) -> (runner, metrics f32[S, n])
     abstract: Any  # RunnerState of ShapeDtypeStruct with shardings
     shardings: Any  # RunnerState of NamedSharding
     compiler_options: dict  # XLA options of the chunks (FAST_COMPILE or none); init: FAST_COMPILE
-    compiled: dict  # 'init' / n -> AOT-compiled executable (shared by every Trainer)
+    compiled: dict  # 'params' / 'init' / n -> AOT-compiled executable (shared by every Trainer)
 
     def initialize(self, keys):
-        """init(keys). init runs once per run, so it is compiled without LLVM optimisation: most
-        of it is the threefry code of ~100 parameter initialisers and the episode sampler (70 %
-        of its HLO). Measured (main exploratory config, 64 envs, 2-core VM): compile 11.6 ->
-        6.0 s, run 0.28 -> 0.40 s; with the classic emitters of FAST_COMPILE, 11.9 / 13.3 ->
-        9.8 / 8.7 s (two runs each, 2-core Xeon), run ~0.5 s either way. Its float rounding
-        differs (initial params within 3e-6), the same way on every run of a config."""
+        """The runners of seeds `keys`: init(keys, init_params(keys)), two programs that run once
+        per run, so both compile without LLVM optimisation (most of them is the threefry code of
+        ~100 parameter initialisers and the episode sampler; main exploratory config, 64 envs,
+        2-core VM: compile 11.6 -> 6.0 s, run 0.28 -> 0.40 s; with the classic emitters of
+        FAST_COMPILE 11.9 / 13.3 -> 9.8 / 8.7 s, run ~0.5 s either way; float rounding differs
+        from LLVM's, initial params within 3e-6, the same on every run of a config).
+
+        The parameters are computed on the host CPU, whatever the devices: XLA:GPU compiles their
+        initialisers (14,612 of init's 24,342 HLO instructions for an H100 at 1024 envs) about as
+        slowly as the env reset, and XLA:CPU compiles them in ~2 s. `bench compile --gpu-target
+        h100` at 1024 envs, 2-core EPYC VM: one init program 23.0 s, its env reset alone 8.2 s,
+        the parameters alone 11.4 s. In a multi-host job process 0's parameters are broadcast, so
+        hosts with different CPUs cannot start from parameters that differ in rounding."""
+        import jax
+
         if 'init' not in self.compiled:
-            self.compiled['init'] = compile_lowered(self.init.lower(keys), FAST_COMPILE)
-        return self.compiled['init'](keys)
+            self.compiled['params'] = compile_lowered(self.init_params.lower(keys), FAST_COMPILE)
+            params = jax.tree.map(
+                lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), jax.eval_shape(self.init_params, keys)
+            )
+            self.compiled['init'] = compile_lowered(self.init.lower(keys, params), FAST_COMPILE)
+        params = jax.device_get(self.compiled['params'](keys))
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            params = multihost_utils.broadcast_one_to_all(params)
+        return self.compiled['init'](keys, params)
 
     def compiled_chunk(self, n: int):
         """(executable runner -> (runner, metrics), seconds spent compiling it now)."""
@@ -179,12 +198,16 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
 
     if config.num_seeds == 1:
 
-        def init(keys):
-            return add(ppo.init(keys[0]))
+        def init_params(keys):
+            return add(ppo.init_params(keys[0]))
+
+        def init(keys, params):
+            return add(ppo.init(keys[0], drop(params)))
 
         def updates(runner, n):
             return add(ppo.update_chunk(drop(runner), n))
     else:
+        init_params = jax.vmap(ppo.init_params)
         init = jax.vmap(ppo.init)
 
         def updates(runner, n):
@@ -201,8 +224,13 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
         metrics['nonfinite'] = bad.at[:, -1].set(bad[:, -1] | ~params_ok).astype(jnp.float32)
         return runner, metrics
 
-    abstract = jax.eval_shape(init, jax.ShapeDtypeStruct((config.num_seeds, 2), np.uint32))
+    keys = jax.ShapeDtypeStruct((config.num_seeds, 2), np.uint32)
+    abstract = jax.eval_shape(init, keys, jax.eval_shape(init_params, keys))
     replicated = NamedSharding(mesh, PartitionSpec())
+    try:  # the host CPU computes the initial parameters (Programs.initialize)
+        host = jax.sharding.SingleDeviceSharding(jax.local_devices(backend='cpu')[0])
+    except RuntimeError:  # no CPU backend (JAX_PLATFORMS without cpu): a local device then
+        host = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     env_sharded = NamedSharding(mesh, PartitionSpec(None, 'devices'))
     # Env states are split over the devices; everything else (params, optimiser, rng, counters)
     # is replicated.
@@ -217,6 +245,7 @@ def _programs(config: TrainConfig, devices: tuple) -> Programs:
         network=network,
         ppo=ppo,
         mesh=mesh,
+        init_params=jax.jit(init_params, in_shardings=host, out_shardings=host),
         init=jax.jit(init, in_shardings=replicated, out_shardings=shardings),
         chunk=jax.jit(chunk, static_argnums=1, out_shardings=(shardings, replicated)),
         abstract=abstract,

@@ -107,7 +107,7 @@ def test_every_command_of_the_gpu_bench_script_parses(tmp_path):
     train = [a[1:] for a in runs if a[:1] == ['train.py']]
     evals = [a[1:] for a in runs if a[:1] == ['eval.py']]
     assert len(bench) + len(train) + len(evals) == len(runs), runs
-    assert len(bench) == 13 and len(train) == 6 and len(evals) == 1  # the stages of the default list
+    assert len(bench) == 13 and len(train) == 7 and len(evals) == 1  # the stages of the default list
     for argv in evals:
         args = eval_parser().parse_args(argv)
         assert args.run == '/tmp/gpu_bench_run' and args.episodes == 20, argv

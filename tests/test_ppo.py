@@ -385,6 +385,28 @@ def test_rgbd_sg_attn_learns_choice_with_distractors():
     assert float(ev['success']) >= 0.95
 
 
+def test_init_params_are_those_of_the_envs_observations():
+    # init_params stands one zero observation for the envs' batch (initialisers read shapes only),
+    # so train.py computes the parameters on the host CPU without an env: the same values as
+    # network.init on the real observations, and init(rng, params) is init(rng).
+    from hron_jax.models import ModelConfig, make_model
+
+    model = make_model('rgbd_sg_attn', 2, ModelConfig(**SG_ATTN_SIZES))
+    ppo = make_ppo(SMALL, ChoiceEnv(ChoiceConfig(distractors=True, max_distractors=6)), model)
+    key = jax.random.PRNGKey(3)
+    runner = jax.jit(ppo.init, compiler_options=FAST_COMPILE)(key)
+    _, k_params, _ = jax.random.split(key, 3)
+    direct = jax.jit(model.init, compiler_options=FAST_COMPILE)(k_params, runner.env_state.obs)
+    params = jax.jit(ppo.init_params, compiler_options=FAST_COMPILE)(key)
+    assert _max_diff(params, direct) == 0.0 and _max_diff(runner.params, direct) == 0.0
+    given = jax.jit(ppo.init, compiler_options=FAST_COMPILE)(key, jax.tree.map(lambda x: x + 1.0, params))
+    assert _max_diff(given.params, jax.tree.map(lambda x: x + 1.0, params)) == 0.0
+    same = jax.tree.map(
+        lambda x, y: bool(jnp.array_equal(x, y)), (given.env_state, given.rng), (runner.env_state, runner.rng)
+    )
+    assert all(jax.tree.leaves(same))
+
+
 def test_vmapped_init_with_orthogonal_model_does_not_hang():
     # The project model uses orthogonal init (LAPACK QR); batched QR deadlocked jaxlib on 2 cores.
     from hron_jax.models import ModelConfig, make_model

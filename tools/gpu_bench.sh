@@ -40,7 +40,10 @@
 #                 same numbers; then the same with --xla_gpu_deterministic_ops=true (XLA:GPU's float
 #                 scatter-adds are atomics, in no fixed order): its env steps/s in the runs' logs
 #       trainpy-na  trainpy with XLA:GPU autotuning off (--xla_gpu_autotune_level=0): its share of
-#                 the compile
+#                 the compile (may fail: untuned Triton GEMM tiling failed on the HGT layers' dots
+#                 in a compile for an H100 without one, jax 0.10.2; see bench compile)
+#       trainpy-nt  trainpy with GEMMs on cuBLAS (--xla_gpu_enable_triton_gemm=false: nothing for
+#                 the autotuner to search among Triton tilings): compile seconds and env steps/s
 #
 # Device call (after ../shared/gpu/fetch-wheels.sh here; never set MUJOCO_GL=egl there):
 #   run(command="bash tools/gpu_bench.sh 540", carry=[".whl"], timeout_s=600)
@@ -50,7 +53,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env env-nocull profile profilep model train32 train32bf profilebf train128 train128p compile trainpy evalpy determinism trainpy-na env-warp train32w)
+((${#STAGES[@]})) || STAGES=(env env-nocull profile profilep model train32 train32bf profilebf train128 train128p compile trainpy evalpy determinism trainpy-na trainpy-nt env-warp train32w)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -124,8 +127,12 @@ main() {
           same_metrics "/tmp/gpu_det${flags:+_det}_1" "/tmp/gpu_det${flags:+_det}_2"
         done ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
-        train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na ;;
-      *) echo "unknown stage $s (valid: env env-nocull env-warp profile profilep model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy determinism trainpy-na)" ;;
+        train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na
+        cp /tmp/gpu_bench_run_na/metrics.csv "$OUT/trainpy-na_metrics.csv" 2>/dev/null ;;
+      trainpy-nt) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_triton_gemm=false" \
+        python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run_nt
+        cp /tmp/gpu_bench_run_nt/metrics.csv "$OUT/trainpy-nt_metrics.csv" 2>/dev/null ;;
+      *) echo "unknown stage $s (valid: env env-nocull env-warp profile profilep model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy determinism trainpy-na trainpy-nt)" ;;
     esac
   done
 }

@@ -10,8 +10,9 @@ the same options (--task, --model, --num-envs, --num-steps, --minibatches, --pre
     fwd+grad     its gradient (what every PPO minibatch runs)
     chunk        the whole 1-update training chunk (hron_jax.training.programs: rollout scan, GAE,
                  epochs x minibatches scans), which contains all of the above
-    init         the init program (env reset + parameter init) as train.py compiles it (without
-                 LLVM optimisation, Programs.initialize); a run waits for init + chunk
+    init         the two init programs as train.py compiles them (without LLVM optimisation,
+                 Programs.initialize): the parameters, always on the host CPU, and the env reset
+                 with the optimiser's state; a run waits for both inits + chunk
 Prints: the Markdown table | stage | compile s | HLO text MB | HLO instructions | as each stage is
 compiled (the optimised module's text size and its instruction count, fused computations included:
 proxies for how much XLA had to work through; unlike seconds, which vary by tens of percent on a
@@ -23,8 +24,9 @@ per source module (`hlo_by_source`), i.e. which part of the code makes the progr
 that GPU on this machine, which needs no GPU (a compile-only device of
 `jax.experimental.topologies`; install the CUDA plugin with `pip install -e ".[cuda]"`, and keep
 JAX_PLATFORMS=cpu where there is no GPU). The seconds are this machine's CPU doing XLA:GPU's work
-(HLO passes, LLVM to PTX, ptxas), without autotuning, which needs the device: a proxy that ranks
-changes to the GPU program between GPU leases, not the seconds a GPU host takes.
+(HLO passes, LLVM to PTX, ptxas), without autotuning, which needs the device, and with GEMMs on
+cuBLAS (`deviceless_options`): a proxy that ranks changes to the GPU program between GPU leases,
+not the seconds a GPU host takes.
 """
 
 from __future__ import annotations
@@ -85,6 +87,17 @@ def gpu_target_devices(target: str) -> list:
     return list(topology.devices)
 
 
+def deviceless_options(devices) -> dict:
+    """XLA options a compile for compile-only GPU devices needs: Triton GEMMs off. Without the
+    device XLA:GPU cannot autotune, and its untuned Triton tiling fails on the HGT layers' type
+    slices (jax 0.10.2, H100 target: "Couldn't find output tile sizes that satisfy hlo: dot
+    f32[73728,384]", the 72 object rows of 1024 graphs), so GEMMs go to cuBLAS there. The real
+    device autotunes and compiles them (one H200, 2026-12-04)."""
+    if devices and devices[0].platform != "cpu":
+        return {"xla_gpu_enable_triton_gemm": False}
+    return {}
+
+
 def bench_compile(config, devices=None):
     """Yields {stage, compile_s, hlo_mb, instructions} per stage of the training program of
     `config`, compiled for `devices` (default: this machine's; `gpu_target_devices`)."""
@@ -98,7 +111,7 @@ def bench_compile(config, devices=None):
     # the stages' inputs live where the programs run (compile-only devices cannot take arrays)
     on = jax.sharding.NamedSharding(prog.mesh, jax.sharding.PartitionSpec())
     placed = lambda tree: jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=on), tree)
-    options = prog.compiler_options
+    options = dict(prog.compiler_options, **deviceless_options(devices))
     env, network = prog.env, prog.network
     keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
     states = jax.eval_shape(jax.vmap(env.reset), keys)
@@ -121,13 +134,22 @@ def bench_compile(config, devices=None):
         ("chunk (1 update)", None, None),
     ]
     init_keys = jax.ShapeDtypeStruct((config.num_seeds, 2), "uint32")
-    stages.append(("init", prog.init, (init_keys,)))
+    init_params = jax.eval_shape(prog.init_params, init_keys)
+    init_params = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), init_params)
+    stages.append(("init: parameters (host CPU)", prog.init_params, (init_keys,)))
+    stages.append(("init: env reset", prog.init, (init_keys, init_params)))
     for name, fn, args in stages:
         t = time.perf_counter()
         if fn is None:
             compiled = compile_lowered(prog.chunk.lower(prog.abstract, 1), options)
-        else:  # init as the Trainer compiles it (Programs.initialize)
-            compiled = compile_lowered(fn.lower(*placed(args)), FAST_COMPILE if name == "init" else options)
+        elif fn is prog.init_params:  # as the Trainer compiles it (Programs.initialize): host CPU
+            compiled = compile_lowered(fn.lower(*args), FAST_COMPILE)
+        elif fn is prog.init:
+            compiled = compile_lowered(
+                fn.lower(*placed(args)), dict(FAST_COMPILE, **deviceless_options(devices))
+            )
+        else:
+            compiled = compile_lowered(fn.lower(*placed(args)), options)
         seconds = time.perf_counter() - t
         text = compiled.as_text() or ""
         yield dict(stage=name, compile_s=seconds, hlo_mb=len(text) / 1e6, instructions=hlo_instructions(text))
@@ -275,7 +297,11 @@ def run(a: argparse.Namespace) -> None:
     )
     physics = f", physics {config.env.sim.physics}" if a.task != "choice" else ""
     devices = gpu_target_devices(a.gpu_target) if a.gpu_target else None
-    target = f", XLA:GPU for {devices[0].device_kind} (no device: compile only)" if devices else ""
+    target = (
+        f", XLA:GPU for {devices[0].device_kind} (no device: compile only, Triton GEMMs off)"
+        if devices
+        else ""
+    )
     print(
         f"task {a.task}, model {a.model}, {a.num_envs} envs{physics}{target}, cold compiles (no "
         "persistent cache)",
@@ -287,7 +313,8 @@ def run(a: argparse.Namespace) -> None:
 
         deep_tracebacks()
         prog = programs(config, devices)
-        text = compile_lowered(prog.chunk.lower(prog.abstract, 1), prog.compiler_options).as_text() or ""
+        options = dict(prog.compiler_options, **deviceless_options(devices))
+        text = compile_lowered(prog.chunk.lower(prog.abstract, 1), options).as_text() or ""
         counts = hlo_by_source(text)
         total = sum(counts.values())
         print("\n| source (innermost hron_jax module) | HLO instructions of the chunk | share |")
