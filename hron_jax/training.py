@@ -4,7 +4,8 @@ Role: what `train.py` runs (its CLI is hron_jax.cli); the run directory's files 
 hron_jax.run_dir (config, checkpoints) and hron_jax.metrics_log (metrics, curves).
 
 Program (`Programs`, built once per program-relevant config and cached in-process):
-    init(keys u32[S, 2]) -> RunnerState with a leading seed axis S on every leaf
+    init_params(keys u32[S, 2]) -> params [S, ...]     on the host CPU (see Programs.initialize)
+    init(keys, params) -> RunnerState with a leading seed axis S on every leaf
     chunk(runner, n: static) -> (runner, metrics {name: f32[S, n]})
 S = num_seeds seeds train in one program (jax.vmap of hron_jax.ppo over the RunnerState; with
 S = 1 the unvmapped PPO runs and the axis is added outside, which keeps the branches of PPO's
