@@ -37,8 +37,10 @@
 #       evalpy    eval.py on trainpy's run as a user runs it (20 episodes, no compile cache): its
 #                 logged compile and play seconds (run after trainpy, which leaves the run)
 #       determinism  trainpy twice (the second from the compile cache) and whether both logged the
-#                 same numbers; then the same with --xla_gpu_deterministic_ops=true (XLA:GPU's float
-#                 scatter-adds are atomics, in no fixed order): its env steps/s in the runs' logs
+#                 same numbers (XLA:GPU's float scatter-adds are atomics, in no fixed order)
+#       determinism-ops  the same with --xla_gpu_deterministic_ops=true: whether that fixes it, its
+#                 env steps/s in the runs' logs and its compile (for an H100 without one, 2026-12-04:
+#                 every scatter gets a sort, 9 -> 62 sorts, chunk compile 48.7 -> 114.5 s)
 #       trainpy-na  trainpy with XLA:GPU autotuning off (--xla_gpu_autotune_level=0): its share of
 #                 the compile (may fail: untuned Triton GEMM tiling failed on the HGT layers' dots
 #                 in a compile for an H100 without one, jax 0.10.2; see bench compile)
@@ -53,7 +55,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env env-nocull profile profilep model train32 train32bf profilebf train128 train128p compile trainpy evalpy determinism trainpy-na trainpy-nt env-warp train32w)
+((${#STAGES[@]})) || STAGES=(env env-nocull profile profilep model train32 train32bf profilebf train128 train128p compile trainpy evalpy determinism determinism-ops trainpy-na trainpy-nt env-warp train32w)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -117,22 +119,25 @@ main() {
         cp /tmp/gpu_bench_run/metrics.csv "$OUT/trainpy_metrics.csv" 2>/dev/null ;;
       evalpy) step "$(box 150)" python3 eval.py /tmp/gpu_bench_run --episodes 20 --plots 0 \
         --compile-cache none ;;
-      determinism)
-        for flags in "" "--xla_gpu_deterministic_ops=true"; do
-          for i in 1 2; do
-            step "$(box 150)" env XLA_FLAGS="${XLA_FLAGS:-} $flags" python3 train.py "${user_run[@]}" \
-              --compile-cache /tmp/gpu_det_cache --out "/tmp/gpu_det${flags:+_det}_$i"
-          done
-          echo "== XLA flags '$flags'"
-          same_metrics "/tmp/gpu_det${flags:+_det}_1" "/tmp/gpu_det${flags:+_det}_2"
-        done ;;
+      determinism|determinism-ops)
+        # The first run compiles (cold: ~90 s on the H200; with deterministic ops XLA sorts every
+        # scatter's indices, which more than doubled the compile for an H100 without one), the
+        # second loads the first's programs from the cache.
+        local flags="" first=150
+        [[ $s == determinism-ops ]] && flags="--xla_gpu_deterministic_ops=true" first=280
+        for i in 1 2; do
+          step "$(box $((i == 1 ? first : 120)))" env XLA_FLAGS="${XLA_FLAGS:-} $flags" python3 train.py \
+            "${user_run[@]}" --compile-cache "/tmp/gpu_${s}_cache" --out "/tmp/gpu_${s}_$i"
+        done
+        echo "== XLA flags '$flags'"
+        same_metrics "/tmp/gpu_${s}_1" "/tmp/gpu_${s}_2" ;;
       trainpy-na) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" python3 \
         train.py "${user_run[@]}" --out /tmp/gpu_bench_run_na
         cp /tmp/gpu_bench_run_na/metrics.csv "$OUT/trainpy-na_metrics.csv" 2>/dev/null ;;
       trainpy-nt) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_triton_gemm=false" \
         python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run_nt
         cp /tmp/gpu_bench_run_nt/metrics.csv "$OUT/trainpy-nt_metrics.csv" 2>/dev/null ;;
-      *) echo "unknown stage $s (valid: env env-nocull env-warp profile profilep model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy determinism trainpy-na trainpy-nt)" ;;
+      *) echo "unknown stage $s (valid: env env-nocull env-warp profile profilep model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy determinism determinism-ops trainpy-na trainpy-nt)" ;;
     esac
   done
 }
