@@ -1022,18 +1022,24 @@ def test_patch_conv_equals_xla_convolution(size, kernel, stride, impl):
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-4), g_ours, g_ref)
 
 
-def test_conv_auto_is_patches_on_cpu_and_xla_convolution_on_gpu():
+@pytest.mark.parametrize("side", [32, 33])
+def test_conv_auto_is_patches_on_cpu_and_xla_convolution_on_gpu_above_32x32(side):
     # ModelConfig.conv='auto': the gradient program lowered for the CPU has no convolution op
-    # (patches + matmul), lowered for a GPU it has convolutions and no patch concatenation.
-    from hron_jax.models.encoders import PatchConv
+    # (patches + matmul); lowered for a GPU it has convolutions and no patch concatenation, unless
+    # the input has at most 32 x 32 pixels (patches there too).
+    from hron_jax.models.encoders import AUTO_PATCHES_MAX_PIXELS, PatchConv
 
-    x = jnp.ones((2, 16, 16, 4))
+    assert AUTO_PATCHES_MAX_PIXELS == 32 * 32
+    x = jnp.ones((2, side, side, 4))
     conv = PatchConv(8, 4, 2)
     params = conv.init(jax.random.PRNGKey(0), x)
     traced = jax.jit(jax.grad(lambda p: jnp.sum(conv.apply(p, x) ** 2))).trace(params)
     cpu, gpu = traced.lower().as_text(), traced.lower(lowering_platforms=("cuda",)).as_text()
     assert "convolution" not in cpu and "concatenate" in cpu
-    assert "convolution" in gpu and "concatenate" not in gpu
+    if side <= 32:
+        assert "convolution" not in gpu and "concatenate" in gpu
+    else:
+        assert "convolution" in gpu and "concatenate" not in gpu
 
 
 def test_take_rows_is_a_gather_with_a_matmul_gradient_on_gpu():

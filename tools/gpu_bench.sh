@@ -6,7 +6,7 @@
 #   bash tools/gpu_bench.sh [SECONDS] [STAGE...]
 #     SECONDS  time box of the whole script (default 540)
 #     STAGE    any of (default: all, in this order; all of them take ~20 min, more than one 15-min
-#              lease: pick, e.g. `train32 profilep trainpy`)
+#              lease: pick, e.g. `train32 profile trainpy`)
 #       env       bench env: physics, 128x128 render, env step at 1024 / 4096 / 8192 envs, with
 #                 the row-band culled kernel (default) and one band per column (the kernel
 #                 before the bands)
@@ -19,8 +19,9 @@
 #                 fuses the test into the min, no candidate tables at all; 21 GB if it does not)
 #       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
 #                 steps, 32x32 camera, 8 minibatches of 8192 (and its compile time)
-#       profilep  profile with the CPU's patch convolutions (conv=patches): on the H200 (2026-12-04)
-#                 the RGB-D encoder's first cuDNN convolution's gradient took 310 ms of a 3.3 s update
+#       profilex  profile with XLA's (cuDNN) convolutions (conv=xla), against profile, whose 32x32
+#                 camera takes patch convolutions since 2026-12-04 (conv=auto): on the H200
+#                 (2026-12-04) the first cuDNN convolution's gradient took 310 ms of a 3.3 s update
 #       model     bench model: the main model's forward and fwd+grad at batch 8192 with the HGT
 #                 layers on the sliced static type layout (the default) and on type blocks
 #       train32   bench train: that update as train.py runs it (CUDA graphs on): env steps/s
@@ -55,7 +56,7 @@ cd "$(dirname "$0")/.."
 SECONDS_BOX=${1:-540}
 shift $(($# > 0 ? 1 : 0))
 STAGES=("$@")
-((${#STAGES[@]})) || STAGES=(env env-nocull profile profilep model train32 train32bf profilebf train128 train128p compile trainpy evalpy determinism determinism-ops trainpy-na trainpy-nt env-warp train32w)
+((${#STAGES[@]})) || STAGES=(env env-nocull profile profilex model train32 train32bf profilebf train128 train128p compile trainpy evalpy determinism determinism-ops trainpy-na trainpy-nt env-warp train32w)
 OUT=${OUT:-/tmp/gpu_bench_out}
 mkdir -p "$OUT"
 # shellcheck source=tools/gpu_lib.sh
@@ -99,8 +100,8 @@ main() {
         --backends kernel-nocull --native-envs 1 --steps 10 --repeats 2 ;;
       profile) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 --top 40 ;;
-      profilep) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
-        --image-size 32 --repeats 2 --top 40 --model-option conv=patches ;;
+      profilex) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
+        --image-size 32 --repeats 2 --top 40 --model-option conv=xla ;;
       model) step "$(box 120)" python3 -m hron_jax.bench model --variants rgbd_sg_attn --batch 8192 \
         --reps 10 --hgt-layouts sliced blocks ;;
       train32) step "$(box 240)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
@@ -137,7 +138,7 @@ main() {
       trainpy-nt) step "$(box 220)" env XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_triton_gemm=false" \
         python3 train.py "${user_run[@]}" --out /tmp/gpu_bench_run_nt
         cp /tmp/gpu_bench_run_nt/metrics.csv "$OUT/trainpy-nt_metrics.csv" 2>/dev/null ;;
-      *) echo "unknown stage $s (valid: env env-nocull env-warp profile profilep model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy determinism determinism-ops trainpy-na trainpy-nt)" ;;
+      *) echo "unknown stage $s (valid: env env-nocull env-warp profile profilex model train32 train32w train32bf profilebf train128 train128p compile trainpy evalpy determinism determinism-ops trainpy-na trainpy-nt)" ;;
     esac
   done
 }

@@ -63,6 +63,10 @@ def image_patches(x, k: int, s: int):
     )
 
 
+# Inputs up to this many pixels take patches on every platform under impl 'auto' (PatchConv).
+AUTO_PATCHES_MAX_PIXELS = 32 * 32
+
+
 class PatchConv(nn.Module):
     """2-D convolution (SAME padding, HWIO kernel, bias), computed as `impl` says.
 
@@ -73,8 +77,13 @@ class PatchConv(nn.Module):
     runs inside lax.scan; as slices + matmul the gradient costs 19 ms in the loop. impl 'xla':
     XLA's convolution (cuDNN on a GPU), which never builds the patch tensor (k*k times the input:
     8.6 GB for the first layer of an 8192-sample minibatch of 128 x 128 RGB-D). impl 'auto': patches
-    on a CPU, XLA's convolution on any other platform (lax.platform_dependent, decided when the
-    program is lowered). f32[B, H, W, C] -> f32[B, H/s, W/s, features].
+    on a CPU; elsewhere patches for inputs of at most AUTO_PATCHES_MAX_PIXELS (32 x 32), XLA's
+    convolution above (lax.platform_dependent, decided when the program is lowered). Why 32 x 32:
+    `bench profile` of one PPO update (exploratory, 4096 envs x 16 steps, 32 x 32, minibatches of
+    8192) put the whole encoders.py at 137 ms with patches on one H100 (2026-11-27) and at 365 ms
+    with cuDNN on one H200 (2026-12-04), 310 ms of it the gradient of the first convolution (4
+    input channels, 8 x 8 kernel, stride 4); larger inputs are not measured yet (`tools/gpu_bench.sh`
+    train128 / train128p). f32[B, H, W, C] -> f32[B, H/s, W/s, features].
     """
 
     features: int
@@ -98,7 +107,9 @@ class PatchConv(nn.Module):
                 x, kernel, s, "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
             )
 
-        if self.impl == "auto":
+        if self.impl == "auto" and x.shape[-3] * x.shape[-2] <= AUTO_PATCHES_MAX_PIXELS:
+            y = patches(x, kernel)
+        elif self.impl == "auto":
             y = jax.lax.platform_dependent(x, kernel, cpu=patches, default=xla)
         else:
             y = {"patches": patches, "xla": xla}[self.impl](x, kernel)
