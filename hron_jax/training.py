@@ -74,7 +74,7 @@ class Programs(NamedTuple):
 
         The parameters are computed on the host CPU, whatever the devices: XLA:GPU compiles their
         initialisers (14,612 of init's 24,342 HLO instructions for an H100 at 1024 envs) about as
-        slowly as the env reset, and XLA:CPU compiles them in ~2 s. `bench compile --gpu-target
+        slowly as the env reset, and XLA:CPU compiles them in 2-3 s. `bench compile --gpu-target
         h100` at 1024 envs, 2-core EPYC VM: one init program 23.0 s, its env reset alone 8.2 s,
         the parameters alone 11.4 s. In a multi-host job process 0's parameters are broadcast, so
         hosts with different CPUs cannot start from parameters that differ in rounding."""
