@@ -72,12 +72,12 @@ class Programs(NamedTuple):
         FAST_COMPILE 11.9 / 13.3 -> 9.8 / 8.7 s, run ~0.5 s either way; float rounding differs
         from LLVM's, initial params within 3e-6, the same on every run of a config).
 
-        The parameters are computed on the host CPU, whatever the devices: XLA:GPU compiles their
-        initialisers (14,612 of init's 24,342 HLO instructions for an H100 at 1024 envs) about as
-        slowly as the env reset, and XLA:CPU compiles them in 2-3 s. `bench compile --gpu-target
-        h100` at 1024 envs, 2-core EPYC VM: one init program 23.0 s, its env reset alone 8.2 s,
-        the parameters alone 11.4 s. In a multi-host job process 0's parameters are broadcast, so
-        hosts with different CPUs cannot start from parameters that differ in rounding."""
+        The parameters are computed on the host CPU, whatever the devices: their initialisers are
+        14,612 of the 24,342 HLO instructions XLA:GPU made of one init program for an H100 at 1024
+        envs (`bench compile --gpu-target h100`, 2-core EPYC VM: that program 23.0 s, its env
+        reset alone 8.2 s, the parameters alone 11.4 s), and XLA:CPU compiles them in 2-3 s. In a
+        multi-host job process 0's parameters are broadcast, so hosts with different CPUs cannot
+        start from parameters that differ in rounding."""
         import jax
 
         if 'init' not in self.compiled:
