@@ -42,7 +42,7 @@ class ModelConfig:
             (patch slices + one matmul: XLA:CPU runs a convolution's gradient ~30x slower inside
             the minibatch scan), 'xla' (XLA's convolution: cuDNN on a GPU, no patch tensor, whose
             size is k*k x the input's), or 'auto' (patches on a CPU and for inputs up to 32 x 32,
-            where they were ~2.7x faster on a GPU too; XLA's for larger inputs on other platforms).
+            where GPU profiles favoured them too, see PatchConv; XLA's for larger inputs elsewhere).
         cnn_fc: widths of the 3 FC layers after flattening (RGB-D and metric-map branches).
         map_class_features: width of the learned embedding of the metric map's class channel
             (encoders.MapEncoder: a class id is a category, not a magnitude).
