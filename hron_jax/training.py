@@ -109,12 +109,21 @@ class Programs(NamedTuple):
 # models, 1-update chunk / init compile s): choice 7.2 / 3.5 -> 3.8 / 2.4, directed 27.0 / 7.6 ->
 # 15.7 / 5.7, exploratory 23.3 / 7.5 -> 18.1 / 6.3; default exploratory model at 16 x 16: 37.7 ->
 # 21.5 s, but 34 -> 46 s per update. For tests and debugging; float rounding differs, so it is part
-# of the config (resume checks it).
+# of the config (resume checks it). XLA:GPU ignores those three; its counterpart is ptxas at -O0
+# (XLA:CPU ignores it): the init's env reset at 1024 envs compiled for an H100 without one
+# (bench compile --gpu-target, 2-core VM) in 11.9 / 11.1 -> 10.4 / 9.7 s, alternated.
 FAST_COMPILE = {
     'xla_backend_optimization_level': 0,
     'xla_llvm_disable_expensive_passes': True,
     'xla_cpu_use_fusion_emitters': False,
+    'xla_gpu_disable_gpuasm_optimizations': True,
 }
+
+
+# Compile options the installed XLA rejected as unknown (compile_lowered), e.g. jax >= 0.11's, and
+# those supported_options has tried.
+_UNKNOWN_OPTIONS: set[str] = set()
+_CHECKED_OPTIONS: set[str] = set()
 
 
 def compile_lowered(lowered, options: dict | None):
@@ -123,7 +132,7 @@ def compile_lowered(lowered, options: dict | None):
     fails the whole compile. Options are read before any compiling, so a retry costs nothing."""
     import jax
 
-    options = dict(options or {})
+    options = {k: v for k, v in (options or {}).items() if k not in _UNKNOWN_OPTIONS}
     while True:
         try:
             return lowered.compile(options)
@@ -131,7 +140,20 @@ def compile_lowered(lowered, options: dict | None):
             unknown = re.search(r"No such compile option: '(\w+)'", str(e))
             if unknown is None or unknown.group(1) not in options:
                 raise
+            _UNKNOWN_OPTIONS.add(unknown.group(1))
             del options[unknown.group(1)]
+
+
+def supported_options(options: dict) -> dict:
+    """`options` less those this XLA does not know, for `jax.jit(..., compiler_options=...)` (which,
+    unlike compile_lowered, fails on them): a one-op program is compiled once to find out."""
+    import jax
+    import jax.numpy as jnp
+
+    if not set(options) <= _CHECKED_OPTIONS:
+        compile_lowered(jax.jit(lambda x: x + 1).lower(jnp.zeros(())), options)
+        _CHECKED_OPTIONS.update(options)
+    return {k: v for k, v in options.items() if k not in _UNKNOWN_OPTIONS}
 
 
 def make_mesh(num_envs: int, devices=None):

@@ -33,7 +33,7 @@ from hron_jax.models import ModelConfig, attention_readout, make_model
 from hron_jax.rollout import unroll
 from hron_jax.scenes import vocabulary as V
 from hron_jax.sim import TURN_LEFT, TURN_RIGHT
-from hron_jax.training import FAST_COMPILE
+from hron_jax.training import FAST_COMPILE, compile_lowered, supported_options
 
 MODELS = ('rgbd', 'rgbd_mm', 'rgbd_sg', 'rgbd_sg_attn', 'gcn', 'yang')
 EPISODES = 4
@@ -87,7 +87,7 @@ def nav():
         return sampled.goal, traj
 
     keys = jax.random.split(jax.random.PRNGKey(0), EPISODES)
-    run = jax.jit(jax.vmap(episode)).lower(keys).compile(dict(FAST_COMPILE))
+    run = compile_lowered(jax.jit(jax.vmap(episode)).lower(keys), FAST_COMPILE)
     sampled_goal, traj = _np(run(keys))
     return dict(env=env, sampled_goal=sampled_goal, traj=traj)
 
@@ -125,7 +125,7 @@ def _runner(name):
             enc = att.get('core', {}).get('graph_encoder', {})
             return logits, value, enc['pool_weights'][0] if 'pool_weights' in enc else None
 
-        _RUNNERS[name] = (model, jax.jit(apply, compiler_options=FAST_COMPILE))
+        _RUNNERS[name] = (model, jax.jit(apply, compiler_options=supported_options(FAST_COMPILE)))
     return _RUNNERS[name]
 
 
@@ -136,7 +136,9 @@ def params(nav):
     out = {}
     for i, name in enumerate(MODELS):
         model, _ = _runner(name)
-        out[name] = jax.jit(model.init, compiler_options=FAST_COMPILE)(jax.random.PRNGKey(i), obs0)
+        out[name] = jax.jit(model.init, compiler_options=supported_options(FAST_COMPILE))(
+            jax.random.PRNGKey(i), obs0
+        )
     return out
 
 

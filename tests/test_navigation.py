@@ -21,7 +21,7 @@ from hron_jax.envs.choice import ChoiceEnv
 from hron_jax.rollout import episode_ends, unroll
 from hron_jax.scenes import vocabulary as V
 from hron_jax.sim import BACKWARD, FORWARD, STOP
-from hron_jax.training import FAST_COMPILE
+from hron_jax.training import FAST_COMPILE, supported_options
 
 ORACLE = -1
 DIRECTED_T = 45  # = the directed env's max_steps; oracle episodes end (and auto-reset) sooner
@@ -51,8 +51,8 @@ class Bundle:
         self.sample = jax.jit(env.sample_episode)
         self.sample_batch = jax.jit(jax.vmap(env.sample_episode))
         run = _make_run(env, num_steps)
-        self.run = jax.jit(run, compiler_options=FAST_COMPILE)
-        self.run_batch = jax.jit(jax.vmap(run), compiler_options=FAST_COMPILE)
+        self.run = jax.jit(run, compiler_options=supported_options(FAST_COMPILE))
+        self.run_batch = jax.jit(jax.vmap(run), compiler_options=supported_options(FAST_COMPILE))
 
     def oracle_batch(self, seed, n):
         keys = jax.random.split(jax.random.PRNGKey(seed), n)

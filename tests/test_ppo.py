@@ -14,7 +14,7 @@ from hron_jax.envs.base import AutoResetWrapper, initial_state, next_state
 from hron_jax.envs.choice import ChoiceConfig, ChoiceEnv
 from hron_jax.ppo import PPOConfig, compute_gae, make_ppo, make_train
 from hron_jax.scenes import vocabulary as V
-from hron_jax.training import FAST_COMPILE
+from hron_jax.training import FAST_COMPILE, supported_options
 
 
 # --- a small graph policy for the choice task (the project models are tested elsewhere) ---------
@@ -394,12 +394,16 @@ def test_init_params_are_those_of_the_envs_observations():
     model = make_model('rgbd_sg_attn', 2, ModelConfig(**SG_ATTN_SIZES))
     ppo = make_ppo(SMALL, ChoiceEnv(ChoiceConfig(distractors=True, max_distractors=6)), model)
     key = jax.random.PRNGKey(3)
-    runner = jax.jit(ppo.init, compiler_options=FAST_COMPILE)(key)
+    runner = jax.jit(ppo.init, compiler_options=supported_options(FAST_COMPILE))(key)
     _, k_params, _ = jax.random.split(key, 3)
-    direct = jax.jit(model.init, compiler_options=FAST_COMPILE)(k_params, runner.env_state.obs)
-    params = jax.jit(ppo.init_params, compiler_options=FAST_COMPILE)(key)
+    direct = jax.jit(model.init, compiler_options=supported_options(FAST_COMPILE))(
+        k_params, runner.env_state.obs
+    )
+    params = jax.jit(ppo.init_params, compiler_options=supported_options(FAST_COMPILE))(key)
     assert _max_diff(params, direct) == 0.0 and _max_diff(runner.params, direct) == 0.0
-    given = jax.jit(ppo.init, compiler_options=FAST_COMPILE)(key, jax.tree.map(lambda x: x + 1.0, params))
+    given = jax.jit(ppo.init, compiler_options=supported_options(FAST_COMPILE))(
+        key, jax.tree.map(lambda x: x + 1.0, params)
+    )
     assert _max_diff(given.params, jax.tree.map(lambda x: x + 1.0, params)) == 0.0
     same = jax.tree.map(
         lambda x, y: bool(jnp.array_equal(x, y)), (given.env_state, given.rng), (runner.env_state, runner.rng)
@@ -415,8 +419,8 @@ def test_vmapped_init_with_orthogonal_model_does_not_hang():
     ppo = make_ppo(SMALL, ChoiceEnv(ChoiceConfig(distractors=True, max_distractors=6)), model)
     keys = jax.random.split(jax.random.PRNGKey(3), 2)
     # compiled as train.py compiles init (Programs.initialize)
-    runners = jax.jit(jax.vmap(ppo.init), compiler_options=FAST_COMPILE)(keys)
-    single = jax.jit(ppo.init, compiler_options=FAST_COMPILE)(keys[1])
+    runners = jax.jit(jax.vmap(ppo.init), compiler_options=supported_options(FAST_COMPILE))(keys)
+    single = jax.jit(ppo.init, compiler_options=supported_options(FAST_COMPILE))(keys[1])
     assert _max_diff(jax.tree.map(lambda x: x[1], runners.params), single.params) == 0.0
 
 

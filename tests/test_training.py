@@ -818,10 +818,10 @@ def test_learning_curve_points_pool_episodes_per_seed():
 def test_compile_drops_only_the_options_this_xla_does_not_know():
     """XLA drops flags between releases (jax 0.11's has no xla_cpu_use_fusion_emitters): an unknown
     option is left out and the program still compiles and computes; any other bad option still
-    fails, naming itself."""
+    fails, naming itself; supported_options gives jax.jit the options this XLA knows."""
     import jax.numpy as jnp
 
-    from hron_jax.training import FAST_COMPILE, compile_lowered
+    from hron_jax.training import FAST_COMPILE, compile_lowered, supported_options
 
     lowered = jax.jit(lambda x: 2.0 * x + 1.0).lower(jnp.arange(3.0))
     options = dict(FAST_COMPILE, xla_option_no_release_has=True)
@@ -830,3 +830,9 @@ def test_compile_drops_only_the_options_this_xla_does_not_know():
     assert 'xla_option_no_release_has' in options  # the caller's dict is left as it was
     with pytest.raises(jax.errors.JaxRuntimeError, match='xla_backend_optimization_level'):
         compile_lowered(lowered, {'xla_backend_optimization_level': 'abc'})
+    # jax.jit(..., compiler_options=...) call sites get the options this XLA knows.
+    known = supported_options(dict(FAST_COMPILE, xla_option_no_release_has_either=False))
+    assert 'xla_option_no_release_has_either' not in known
+    assert known.get('xla_backend_optimization_level') == 0  # known to every release so far
+    fn = jax.jit(lambda x: 2.0 * x + 1.0, compiler_options=known)
+    np.testing.assert_array_equal(np.asarray(fn(jnp.arange(3.0))), [1.0, 3.0, 5.0])
