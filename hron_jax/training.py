@@ -82,10 +82,8 @@ class Programs(NamedTuple):
 
         if 'init' not in self.compiled:
             self.compiled['params'] = compile_lowered(self.init_params.lower(keys), FAST_COMPILE)
-            params = jax.tree.map(
-                lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), jax.eval_shape(self.init_params, keys)
-            )
-            self.compiled['init'] = compile_lowered(self.init.lower(keys, params), FAST_COMPILE)
+            lowered = self.init.lower(keys, self.abstract.params)  # replicated, as init takes them
+            self.compiled['init'] = compile_lowered(lowered, FAST_COMPILE)
         params = jax.device_get(self.compiled['params'](keys))
         if jax.process_count() > 1:
             from jax.experimental import multihost_utils

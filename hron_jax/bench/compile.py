@@ -111,7 +111,8 @@ def bench_compile(config, devices=None):
     # the stages' inputs live where the programs run (compile-only devices cannot take arrays)
     on = jax.sharding.NamedSharding(prog.mesh, jax.sharding.PartitionSpec())
     placed = lambda tree: jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=on), tree)
-    options = dict(prog.compiler_options, **deviceless_options(devices))
+    deviceless = deviceless_options(devices)
+    options, init_options = dict(prog.compiler_options, **deviceless), dict(FAST_COMPILE, **deviceless)
     env, network = prog.env, prog.network
     keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
     states = jax.eval_shape(jax.vmap(env.reset), keys)
@@ -134,22 +135,16 @@ def bench_compile(config, devices=None):
         ("chunk (1 update)", None, None),
     ]
     init_keys = jax.ShapeDtypeStruct((config.num_seeds, 2), "uint32")
-    init_params = jax.eval_shape(prog.init_params, init_keys)
-    init_params = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), init_params)
     stages.append(("init: parameters (host CPU)", prog.init_params, (init_keys,)))
-    stages.append(("init: env reset", prog.init, (init_keys, init_params)))
+    stages.append(("init: env reset", prog.init, (init_keys, prog.abstract.params)))
     for name, fn, args in stages:
         t = time.perf_counter()
         if fn is None:
             compiled = compile_lowered(prog.chunk.lower(prog.abstract, 1), options)
-        elif fn is prog.init_params:  # as the Trainer compiles it (Programs.initialize): host CPU
+        elif fn is prog.init_params:  # on its own (host CPU) shardings, as Programs.initialize does
             compiled = compile_lowered(fn.lower(*args), FAST_COMPILE)
-        elif fn is prog.init:
-            compiled = compile_lowered(
-                fn.lower(*placed(args)), dict(FAST_COMPILE, **deviceless_options(devices))
-            )
-        else:
-            compiled = compile_lowered(fn.lower(*placed(args)), options)
+        else:  # init with the options Programs.initialize compiles it with
+            compiled = compile_lowered(fn.lower(*placed(args)), init_options if fn is prog.init else options)
         seconds = time.perf_counter() - t
         text = compiled.as_text() or ""
         yield dict(stage=name, compile_s=seconds, hlo_mb=len(text) / 1e6, instructions=hlo_instructions(text))
@@ -313,7 +308,7 @@ def run(a: argparse.Namespace) -> None:
 
         deep_tracebacks()
         prog = programs(config, devices)
-        options = dict(prog.compiler_options, **deviceless_options(devices))
+        options = dict(prog.compiler_options, **deviceless_options(devices))  # as bench_compile's
         text = compile_lowered(prog.chunk.lower(prog.abstract, 1), options).as_text() or ""
         counts = hlo_by_source(text)
         total = sum(counts.values())
