@@ -14,7 +14,13 @@ import numpy as np
 import pytest
 
 from hron_jax.bench.__main__ import build_parser as bench_parser
-from hron_jax.bench.compile import deep_tracebacks, hlo_by_source, hlo_instructions, instruction_sources
+from hron_jax.bench.hlo import (
+    deep_tracebacks,
+    hlo_by_source,
+    hlo_instructions,
+    instruction_sources,
+    kernel_traffic,
+)
 from hron_jax.bench.profile import op_times
 from hron_jax.cli import build_parser as train_parser
 from hron_jax.cli import config_from_args
@@ -79,6 +85,103 @@ def test_ops_without_our_frames_name_their_library(deep_stacks):
     fn = jax.jit(lambda g, s: opt.update(g, s, params)[0]).lower(params, opt.init(params)).compile()
     sources = {s for _, s, _ in instruction_sources(fn.as_text()).values()}
     assert '(no hron_jax frame) via optax' in sources, sources
+
+
+# A module as XLA prints it: a table copied into a while loop of 7 known trips that gathers 10
+# rows of it and scatter-adds them back in place, then a loop whose trip count XLA does not know.
+_TRAFFIC_MODULE = """HloModule traffic
+
+%gather_rows (param_0: f32[1000,64], param_1: s32[10,1]) -> f32[10,64] {
+  %param_0 = f32[1000,64]{1,0} parameter(0)
+  %param_1 = s32[10,1]{1,0} parameter(1)
+  %bitcast.1 = f32[1000,64]{1,0} bitcast(%param_0)
+  ROOT %gather.1 = f32[10,64]{1,0} gather(%bitcast.1, %param_1), offset_dims={1}, slice_sizes={1,64}
+}
+
+%add (a: f32[], b: f32[]) -> f32[] {
+  %a = f32[] parameter(0)
+  %b = f32[] parameter(1)
+  ROOT %sum = f32[] add(%a, %b)
+}
+
+%scatter_rows (param_0.1: f32[1000,64], param_1.1: s32[10,1], param_2: f32[10,64]) -> f32[1000,64] {
+  %param_0.1 = f32[1000,64]{1,0} parameter(0)
+  %param_1.1 = s32[10,1]{1,0} parameter(1)
+  %param_2 = f32[10,64]{1,0} parameter(2)
+  %negate.1 = f32[10,64]{1,0} negate(%param_2)
+  ROOT %scatter.1 = f32[1000,64]{1,0} scatter(%param_0.1, %param_1.1, %negate.1), to_apply=%add
+}
+
+%body (p: (s32[], f32[1000,64])) -> (s32[], f32[1000,64]) {
+  %p = (s32[], f32[1000,64]{1,0}) parameter(0)
+  %i = s32[] get-tuple-element(%p), index=0
+  %table = f32[1000,64]{1,0} get-tuple-element(%p), index=1
+  %rows = s32[10,1]{1,0} constant({...})
+  %gathered = f32[10,64]{1,0} fusion(%table, %rows), kind=kLoop, calls=%gather_rows
+  %scattered = f32[1000,64]{1,0} fusion(%table, %rows, %gathered), kind=kLoop, calls=%scatter_rows
+  ROOT %next = (s32[], f32[1000,64]{1,0}) tuple(%i, %scattered)
+}
+
+%cond (q: (s32[], f32[1000,64])) -> pred[] {
+  %q = (s32[], f32[1000,64]{1,0}) parameter(0)
+  ROOT %yes = pred[] constant(true)
+}
+
+%body.2 (r: (s32[], f32[1000,64])) -> (s32[], f32[1000,64]) {
+  %r = (s32[], f32[1000,64]{1,0}) parameter(0)
+  %j = s32[] get-tuple-element(%r), index=0
+  %t = f32[1000,64]{1,0} get-tuple-element(%r), index=1
+  %half = f32[1000,64]{1,0} multiply(%t, %t)
+  ROOT %next.2 = (s32[], f32[1000,64]{1,0}) tuple(%j, %half)
+}
+
+ENTRY %main (x: f32[1000,64]) -> f32[1000,64] {
+  %x = f32[1000,64]{1,0} parameter(0)
+  %copy.1 = f32[1000,64]{1,0} copy(%x)
+  %zero = s32[] constant(0)
+  %init = (s32[], f32[1000,64]{1,0}) tuple(%zero, %copy.1)
+  %loop = (s32[], f32[1000,64]{1,0}) while(%init), condition=%cond, body=%body, TRIPS
+  %loop.2 = (s32[], f32[1000,64]{1,0}) while(%loop), condition=%cond, body=%body.2
+  ROOT %out = f32[1000,64]{1,0} get-tuple-element(%loop.2), index=1
+}
+""".replace('TRIPS', 'backend_config={"known_trip_count":{"n":"7"}}')
+
+
+def test_kernel_traffic_counts_bytes_per_run_of_every_kernel():
+    moved, unknown = kernel_traffic(_TRAFFIC_MODULE)
+    table, rows = 1000 * 64 * 4, 10 * 64 * 4
+    assert unknown == 1
+    assert moved == {
+        'copy.1': 2 * table,  # read and written whole
+        # 7 trips: the 10 gathered rows (not the table they are gathered from), the indices, the result
+        'gathered': 7 * (rows + 10 * 4 + rows),
+        # in place: the table is not streamed; indices and updates read, the touched rows read + written
+        'scattered': 7 * (10 * 4 + rows + 2 * rows),
+        'half': 2 * table + table,  # the loop of unknown trip count: once
+    }
+
+
+def test_kernel_traffic_of_a_compiled_program():
+    # XLA:CPU's module of a scan of 5 trips, a gather of 64 rows and a scatter-add of 64 rows
+    n, rows = 1024 * 256 * 4, 64 * 256 * 4
+
+    def f(x, idx, upd):
+        y, _ = jax.lax.scan(lambda c, _: (jnp.sin(c) * 2.0, None), x, None, length=5)
+        return y[idx].sum(0), jnp.zeros_like(y).at[idx].add(upd)
+
+    args = (jnp.ones((1024, 256)), jnp.arange(64) * 3, jnp.ones((64, 256)))
+    text = jax.jit(f).lower(*args).compile().as_text()
+    moved, unknown = kernel_traffic(text)
+    sources = instruction_sources(text)
+    assert unknown == 0
+    ops = {op: stack for op, (_, _, stack) in sources.items() if op in moved}
+    # each of the 5 trips reads and writes the carry once (beside it, the loop counter's add)
+    step = sorted(moved[op] for op, stack in ops.items() if '/while/body/' in stack)
+    assert step[-1] == 5 * 2 * n and sum(step[:-1]) < 1000
+    (scatter,) = (op for op, stack in ops.items() if stack.endswith('scatter-add'))
+    (gather,) = (op for op, stack in ops.items() if stack.endswith('/gather'))
+    assert moved[scatter] == 64 * 4 + rows + 2 * rows  # not the 1 MB table it updates
+    assert moved[gather] == rows + 64 * 4 + rows  # the rows, not the table
 
 
 def gpu_script_commands(tmp_path, *script, **env) -> list[list[str]]:

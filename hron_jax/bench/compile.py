@@ -13,12 +13,15 @@ the same options (--task, --model, --num-envs, --num-steps, --minibatches, --pre
     init         the two init programs as train.py compiles them (without LLVM optimisation,
                  Programs.initialize): the parameters, always on the host CPU, and the env reset
                  with the optimiser's state; a run waits for both inits + chunk
-Prints: the Markdown table | stage | compile s | HLO text MB | HLO instructions | as each stage is
-compiled (the optimised module's text size and its instruction count, fused computations included:
-proxies for how much XLA had to work through; unlike seconds, which vary by tens of percent on a
-shared machine, they are the same in every run of the same code). Compile seconds include tracing
-and lowering. With --by-source, then a second table: the chunk's HLO instructions
-per source module (`hlo_by_source`), i.e. which part of the code makes the program big.
+Prints: the Markdown table | stage | compile s | HLO text MB | HLO instructions | GB moved | as each
+stage is compiled (the optimised module's text size and its instruction count, fused computations
+included: proxies for how much XLA had to work through; unlike seconds, which vary by tens of
+percent on a shared machine, they are the same in every run of the same code; GB moved: the bytes
+its kernels read and write per run, `hlo.kernel_traffic`, an estimate of the device time of
+memory-bound programs such as the HGT layers on a GPU). Compile seconds include tracing and
+lowering. With --by-source, then a second table: the chunk's HLO instructions and GB moved per
+source module (`hlo.instruction_sources`), i.e. which part of the code makes the program big and
+which moves the bytes.
 
 --gpu-target h100 (or a GpuTargetConfigProto text file): the same programs compiled by XLA:GPU for
 that GPU on this machine, which needs no GPU (a compile-only device of
@@ -32,14 +35,10 @@ not the seconds a GPU host takes.
 from __future__ import annotations
 
 import argparse
-import re
 import time
 
 from .common import stream_table
-
-# An instruction line of an HLO module's text: its name and opcode.
-_INSTRUCTION = re.compile(r"\s*(?:ROOT )?%(\S+) = .*? ([a-z][\w-]*)\(")
-
+from .hlo import deep_tracebacks, hlo_by_source, hlo_instructions, instruction_sources, kernel_traffic
 
 # An NVIDIA H100 SXM (80 GB) as XLA:GPU's compiler sees it (stream_executor's GpuDeviceInfoProto):
 # compute capability 9.0, 132 SMs, 228 KB of shared memory per SM (227 KB opt-in per block), 50 MB
@@ -99,8 +98,8 @@ def deviceless_options(devices) -> dict:
 
 
 def bench_compile(config, devices=None):
-    """Yields {stage, compile_s, hlo_mb, instructions} per stage of the training program of
-    `config`, compiled for `devices` (default: this machine's; `gpu_target_devices`)."""
+    """Yields {stage, compile_s, hlo_mb, instructions, gb_moved} per stage of the training program
+    of `config`, compiled for `devices` (default: this machine's; `gpu_target_devices`)."""
     import jax
 
     from ..training import FAST_COMPILE, compile_lowered, programs
@@ -147,103 +146,26 @@ def bench_compile(config, devices=None):
             compiled = compile_lowered(fn.lower(*placed(args)), init_options if fn is prog.init else options)
         seconds = time.perf_counter() - t
         text = compiled.as_text() or ""
-        yield dict(stage=name, compile_s=seconds, hlo_mb=len(text) / 1e6, instructions=hlo_instructions(text))
+        yield dict(
+            stage=name,
+            compile_s=seconds,
+            hlo_mb=len(text) / 1e6,
+            instructions=hlo_instructions(text),
+            gb_moved=sum(kernel_traffic(text)[0].values()) / 1e9,
+        )
 
 
-def hlo_instructions(text: str) -> int:
-    """Instructions of an optimised HLO module's text, those of fused computations included."""
-    return sum(1 for line in text.splitlines() if _INSTRUCTION.match(line))
-
-
-def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
-    """{instruction name: (opcode, source, op_name)} of an optimised HLO module's text (op_name:
-    the JAX name stack of its metadata, e.g. '.../transpose(jvp(ActorCritic))/.../scatter-add').
-    The source is the innermost hron_jax file on the instruction's stack (metadata stack frames),
-    'via' the library whose code emitted it when that is not ours (e.g. 'sim.py via mujoco'),
-    '(no hron_jax frame) via LIB' when the stack does not reach our code (e.g. MJX kinematics
-    traced inside MJX's own scans, optax; JAX drops its own frames), or "XLA's own" for what
-    XLA inserted (copies, layout changes; no metadata). Parameters are left out. Needs stacks
-    deep enough to reach our frames: compile with jax_traceback_in_locations_limit raised
-    (`deep_tracebacks`)."""
-    sections, current = {}, None
-    for line in text.splitlines():
-        if line in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
-            current = sections.setdefault(line, {})
-            continue
-        m = re.match(r"(\d+) (.*)", line) if current is not None else None
-        if m:
-            current[int(m.group(1))] = m.group(2)
-        else:
-            current = None
-    files = {k: v.strip('"') for k, v in sections.get("FileNames", {}).items()}
-    loc_file = {
-        k: files[int(re.search(r"file_name_id=(\d+)", v).group(1))]
-        for k, v in sections.get("FileLocations", {}).items()
-    }
-    frames = {}
-    for k, v in sections.get("StackFrames", {}).items():
-        loc, parent = (int(x) for x in re.findall(r"=(\d+)", v)[:2])
-        frames[k] = (loc, parent)
-
-    def key(frame: int) -> str:
-        inner, seen = None, set()
-        while frame in frames and frame not in seen:
-            seen.add(frame)
-            loc, parent = frames[frame]
-            path = loc_file[loc]
-            if inner is None:
-                inner = path
-            if "/hron_jax/" in path:
-                name = path.split("/hron_jax/", 1)[1]
-                if "/hron_jax/" not in inner:
-                    lib = inner.split("site-packages/", 1)[-1].split("/", 1)[0]
-                    name += f" via {lib}"
-                return name
-            frame = parent
-        if inner is None:
-            return "(no hron_jax frame)"
-        # e.g. MJX internals traced where the stack no longer reaches our code, optax: name the
-        # library whose code emitted it (JAX drops its own frames, so jax.random is never here)
-        lib = inner.split("site-packages/", 1)[-1].split("/", 1)[0] if "site-packages/" in inner else inner
-        return f"(no hron_jax frame) via {lib.rsplit('/', 1)[-1]}"
-
-    out = {}
-    for line in text.splitlines():
-        m = _INSTRUCTION.match(line)
-        if m and m.group(2) != "parameter":
-            frame = re.search(r"stack_frame_id=(\d+)", line)
-            op_name = re.search(r'op_name="([^"]*)"', line)
-            out[m.group(1)] = (
-                m.group(2),
-                key(int(frame.group(1))) if frame else "(XLA's own: no source)",
-                op_name.group(1) if op_name else "",
-            )
-    return out
-
-
-def hlo_by_source(text: str) -> dict[str, int]:
-    """Instructions of an optimised HLO module's text per source (`instruction_sources`), most first."""
-    counts: dict[str, int] = {}
-    for _, source, _ in instruction_sources(text).values():
-        counts[source] = counts.get(source, 0) + 1
-    return dict(sorted(counts.items(), key=lambda kv: -kv[1]))
-
-
-def deep_tracebacks() -> None:
-    """Stacks deep enough to reach hron_jax frames under MJX / flax / optax code (for
-    `instruction_sources`). They make bigger modules that compile slower, so only the source
-    tables use them, on programs traced afresh."""
-    import jax
-
-    jax.config.update("jax_traceback_in_locations_limit", 64)
-    jax.clear_caches()
-
-
-HEADER = "| stage | compile s | HLO text MB | HLO instructions |\n| --- | ---: | ---: | ---: |"
+HEADER = (
+    "| stage | compile s | HLO text MB | HLO instructions | GB moved per run |\n"
+    "| --- | ---: | ---: | ---: | ---: |"
+)
 
 
 def format_row(r: dict) -> str:
-    return f"| {r['stage']} | {r['compile_s']:.1f} | {r['hlo_mb']:.2f} | {r['instructions']:,} |"
+    return (
+        f"| {r['stage']} | {r['compile_s']:.1f} | {r['hlo_mb']:.2f} | {r['instructions']:,} "
+        f"| {r['gb_moved']:.1f} |"
+    )
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
@@ -255,10 +177,18 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default=None, help="a run_config preset, e.g. paper")
     p.add_argument("--fast-compile", action="store_true", help="XLA without LLVM optimisation")
     p.add_argument(
-        "--by-source", action="store_true", help="then the chunk's HLO instructions per source module"
+        "--by-source",
+        action="store_true",
+        help="then the chunk's HLO instructions and GB moved per source module",
     )
     p.add_argument(
         "--env-option", action="append", default=[], help="NAME=VALUE as in train.py, e.g. sim.physics=warp"
+    )
+    p.add_argument(
+        "--model-option",
+        action="append",
+        default=[],
+        help="NAME=VALUE as in train.py, e.g. gnn_dtype=bfloat16",
     )
     p.add_argument(
         "--gpu-target",
@@ -288,7 +218,14 @@ def run(a: argparse.Namespace) -> None:
     if a.preset:
         extra["preset"] = a.preset
     config = config_from_args(
-        dict(task=a.task, model=a.model, num_envs=a.num_envs, env_option=a.env_option, **extra)
+        dict(
+            task=a.task,
+            model=a.model,
+            num_envs=a.num_envs,
+            env_option=a.env_option,
+            model_option=a.model_option,
+            **extra,
+        )
     )
     physics = f", physics {config.env.sim.physics}" if a.task != "choice" else ""
     devices = gpu_target_devices(a.gpu_target) if a.gpu_target else None
@@ -311,9 +248,19 @@ def run(a: argparse.Namespace) -> None:
         options = dict(prog.compiler_options, **deviceless_options(devices))  # as bench_compile's
         text = compile_lowered(prog.chunk.lower(prog.abstract, 1), options).as_text() or ""
         counts = hlo_by_source(text)
-        total = sum(counts.values())
-        print("\n| source (innermost hron_jax module) | HLO instructions of the chunk | share |")
-        print("| --- | ---: | ---: |")
+        sources = instruction_sources(text)
+        moved, unknown = kernel_traffic(text)
+        gb: dict[str, float] = {}
+        for op, n in moved.items():
+            gb[sources[op][1]] = gb.get(sources[op][1], 0.0) + n / 1e9
+        total, total_gb = sum(counts.values()), sum(gb.values())
+        loops = f" ({unknown} loops of unknown trip count counted once)" if unknown else ""
+        print(
+            "\n| source (innermost hron_jax module) | HLO instructions of the chunk | share "
+            f"| GB moved{loops} | share |"
+        )
+        print("| --- | ---: | ---: | ---: | ---: |")
         for name, n in list(counts.items())[:15]:
-            print(f"| {name} | {n} | {100 * n / total:.1f} % |")
-        print(f"| all | {total} | 100 % |")
+            g = gb.get(name, 0.0)
+            print(f"| {name} | {n} | {100 * n / total:.1f} % | {g:.1f} | {100 * g / total_gb:.1f} % |")
+        print(f"| all | {total} | 100 % | {total_gb:.1f} | 100 % |")

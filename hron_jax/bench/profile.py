@@ -3,7 +3,7 @@
 Profiles the program train.py runs (hron_jax.training, one seed, the options of `bench train`):
 compiles the 1-update chunk, runs it once to warm up and --repeats times untraced (wall time, best
 of), then once under jax.profiler.trace, and attributes the time of every XLA op in the trace to
-the innermost hron_jax source file on the op's stack (`bench compile`'s `instruction_sources`,
+the innermost hron_jax source file on the op's stack (`hlo.instruction_sources`,
 e.g. 'sim.py via mujoco' for MJX physics, 'models/gnn.py via flax', 'ppo.py'). Control-flow ops
 (while, conditional, call) are left out, since their time is that of the ops inside them. Ops are
 read from the GPU's stream lines (kernels and copies), or from the host threads that run XLA's
@@ -27,7 +27,7 @@ import tempfile
 import time
 
 from .common import progress
-from .compile import deep_tracebacks, instruction_sources
+from .hlo import deep_tracebacks, instruction_sources
 from .train import add_args as add_train_args
 from .train import train_config
 
