@@ -13,9 +13,12 @@ names only by their graph: what is profiled launches every kernel on its own, an
 that of this setting.
 
 Prints: the task and sizes, the wall ms per update, then the Markdown table | source | ms per
-update | share of op time | ops |, most expensive first (on a GPU the gap between the op time and
-the wall time is time the device waited: launches, host work, syncs), then the --top (default
-15) most expensive ops with the end of their JAX name stacks. The raw trace stays in --trace-dir
+update | share of op time | ops | GB moved | GB/s |, most expensive first (on a GPU the gap between
+the op time and the wall time is time the device waited: launches, host work, syncs; GB moved:
+`hlo.kernel_traffic`'s estimate of the bytes those ops read and write, so GB/s near the device's
+memory bandwidth marks memory-bound code and checks the estimate that `bench compile --gpu-target`
+gives without a GPU), then the --top (default 15) most expensive ops with the end of their JAX
+name stacks, with the same two columns. The raw trace stays in --trace-dir
 when given (TensorBoard / Perfetto).
 """
 
@@ -27,7 +30,7 @@ import tempfile
 import time
 
 from .common import progress
-from .hlo import deep_tracebacks, instruction_sources
+from .hlo import deep_tracebacks, instruction_sources, kernel_traffic
 from .train import add_args as add_train_args
 from .train import train_config
 
@@ -61,8 +64,9 @@ def op_times(xplane_path: str) -> dict[str, float]:
 
 
 def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=progress) -> dict:
-    """{wall_s (best untraced update), rows: [(source, seconds of the traced update, ops)],
-    ops: [(instruction, seconds, source, op_name)] most expensive first, trace (path)}."""
+    """{wall_s (best untraced update), rows: [(source, seconds of the traced update, ops, bytes
+    moved)], ops: [(instruction, seconds, source, op_name, bytes moved)] most expensive first,
+    trace (path)}; bytes moved: `kernel_traffic`'s estimate per update."""
     import jax
 
     from ..training import programs, seed_keys
@@ -73,6 +77,7 @@ def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=p
     fn, t_compile = prog.compiled_chunk(1)
     log(f"compiled the chunk in {t_compile:.1f} s")
     sources = instruction_sources(fn.as_text() or "")
+    moved, _ = kernel_traffic(fn.as_text() or "")
     runner, _ = jax.block_until_ready(fn(runner))  # warm-up
     wall = float("inf")
     for _ in range(repeats):
@@ -89,11 +94,12 @@ def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=p
         opcode, source, op_name = sources.get(name, ("?", "(not in the chunk)", ""))
         if opcode in CONTROL_FLOW:
             continue
-        row = per_source.setdefault(source, [0.0, 0])
+        row = per_source.setdefault(source, [0.0, 0, 0])
         row[0] += seconds
         row[1] += 1
-        ops.append((name, seconds, source, op_name))
-    rows = sorted(((s, t, n) for s, (t, n) in per_source.items()), key=lambda r: -r[1])
+        row[2] += moved.get(name, 0)
+        ops.append((name, seconds, source, op_name, moved.get(name, 0)))
+    rows = sorted(((s, t, n, b) for s, (t, n, b) in per_source.items()), key=lambda r: -r[1])
     ops.sort(key=lambda r: -r[1])
     return dict(wall_s=wall, rows=rows, ops=ops, trace=path)
 
@@ -116,14 +122,20 @@ def run(a: argparse.Namespace) -> None:
     )
     r = profile_update(config, a.repeats, a.trace_dir)
     print(f"wall {1e3 * r['wall_s']:.1f} ms per update ({batch / r['wall_s']:.0f} env steps/s)\n")
-    total = sum(t for _, t, _ in r["rows"])
-    print("| source (innermost hron_jax module) | ms per update | share of op time | ops |")
-    print("| --- | ---: | ---: | ---: |")
-    for source, t, n in r["rows"][:20]:
-        print(f"| {source} | {1e3 * t:.2f} | {100 * t / total:.1f} % | {n} |")
-    print(f"| all ops | {1e3 * total:.2f} | 100 % | {sum(n for *_, n in r['rows'])} |")
-    print("\n| op (most expensive) | ms per update | source | JAX name stack (its end) |")
-    print("| --- | ---: | --- | --- |")
-    for name, t, source, op_name in r["ops"][: a.top]:
-        print(f"| {name} | {1e3 * t:.2f} | {source} | {op_name[-90:]} |")
+    rows = r["rows"]
+    total, total_bytes = sum(row[1] for row in rows), sum(row[3] for row in rows)
+
+    def moved(b: float, t: float) -> str:  # the GB moved and GB/s columns
+        return f"{b / 1e9:.1f} | {b / 1e9 / t:.0f}" if t > 0 else f"{b / 1e9:.1f} | -"
+
+    print("| source (innermost hron_jax module) | ms per update | share of op time | ops | GB moved | GB/s |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: |")
+    for source, t, n, b in rows[:20]:
+        print(f"| {source} | {1e3 * t:.2f} | {100 * t / total:.1f} % | {n} | {moved(b, t)} |")
+    ops = sum(row[2] for row in rows)
+    print(f"| all ops | {1e3 * total:.2f} | 100 % | {ops} | {moved(total_bytes, total)} |")
+    print("\n| op (most expensive) | ms per update | source | GB moved | GB/s | JAX name stack (its end) |")
+    print("| --- | ---: | --- | ---: | ---: | --- |")
+    for name, t, source, op_name, b in r["ops"][: a.top]:
+        print(f"| {name} | {1e3 * t:.2f} | {source} | {moved(b, t)} | {op_name[-90:]} |")
     print(f"\ntrace: {r['trace']}")
