@@ -88,7 +88,8 @@ def test_ops_without_our_frames_name_their_library(deep_stacks):
 
 
 # A module as XLA prints it: a table copied into a while loop of 7 known trips that gathers 10
-# rows of it and scatter-adds them back in place, then a loop whose trip count XLA does not know.
+# rows of it and scatter-adds them back in place, then a loop whose trip count XLA does not know, a
+# gather from the concatenation of two tables, and a conditional.
 _TRAFFIC_MODULE = """HloModule traffic
 
 %gather_rows (param_0: f32[1000,64], param_1: s32[10,1]) -> f32[10,64] {
@@ -127,6 +128,24 @@ _TRAFFIC_MODULE = """HloModule traffic
   ROOT %yes = pred[] constant(true)
 }
 
+%gather_concat (param_0.2: f32[1000,64], param_1.2: f32[3000,64], param_2.2: s32[10,1]) -> f32[10,64] {
+  %param_0.2 = f32[1000,64]{1,0} parameter(0)
+  %param_1.2 = f32[3000,64]{1,0} parameter(1)
+  %param_2.2 = s32[10,1]{1,0} parameter(2)
+  %both = f32[4000,64]{1,0} concatenate(%param_0.2, %param_1.2), dimensions={0}
+  ROOT %gather.2 = f32[10,64]{1,0} gather(%both, %param_2.2), offset_dims={1}, slice_sizes={1,64}
+}
+
+%br_a (s: f32[10,64]) -> f32[10,64] {
+  %s = f32[10,64]{1,0} parameter(0)
+  ROOT %exp = f32[10,64]{1,0} exponential(%s)
+}
+
+%br_b (u: f32[10,64]) -> f32[10,64] {
+  %u = f32[10,64]{1,0} parameter(0)
+  ROOT %neg = f32[10,64]{1,0} negate(%u)
+}
+
 %body.2 (r: (s32[], f32[1000,64])) -> (s32[], f32[1000,64]) {
   %r = (s32[], f32[1000,64]{1,0}) parameter(0)
   %j = s32[] get-tuple-element(%r), index=0
@@ -135,14 +154,20 @@ _TRAFFIC_MODULE = """HloModule traffic
   ROOT %next.2 = (s32[], f32[1000,64]{1,0}) tuple(%j, %half)
 }
 
-ENTRY %main (x: f32[1000,64]) -> f32[1000,64] {
+ENTRY %main (x: f32[1000,64], big: f32[3000,64], idx: s32[10,1], which: s32[]) -> (f32[1000,64], f32[10,64]) {
   %x = f32[1000,64]{1,0} parameter(0)
   %copy.1 = f32[1000,64]{1,0} copy(%x)
   %zero = s32[] constant(0)
   %init = (s32[], f32[1000,64]{1,0}) tuple(%zero, %copy.1)
   %loop = (s32[], f32[1000,64]{1,0}) while(%init), condition=%cond, body=%body, TRIPS
   %loop.2 = (s32[], f32[1000,64]{1,0}) while(%loop), condition=%cond, body=%body.2
-  ROOT %out = f32[1000,64]{1,0} get-tuple-element(%loop.2), index=1
+  %out = f32[1000,64]{1,0} get-tuple-element(%loop.2), index=1
+  %big = f32[3000,64]{1,0} parameter(1)
+  %idx = s32[10,1]{1,0} parameter(2)
+  %which = s32[] parameter(3)
+  %picked = f32[10,64]{1,0} fusion(%out, %big, %idx), kind=kLoop, calls=%gather_concat
+  %branched = f32[10,64]{1,0} conditional(%which, %picked, %picked), branch_computations={%br_a, %br_b}
+  ROOT %result = (f32[1000,64]{1,0}, f32[10,64]{1,0}) tuple(%out, %branched)
 }
 """.replace('TRIPS', 'backend_config={"known_trip_count":{"n":"7"}}')
 
@@ -158,6 +183,9 @@ def test_kernel_traffic_counts_bytes_per_run_of_every_kernel():
         # in place: the table is not streamed; indices and updates read, the touched rows read + written
         'scattered': 7 * (10 * 4 + rows + 2 * rows),
         'half': 2 * table + table,  # the loop of unknown trip count: once
+        'picked': rows + 10 * 4 + rows,  # 10 rows gathered from the two tables' concatenation
+        'exp': 2 * rows,  # both branches of the conditional: an upper bound
+        'neg': 2 * rows,
     }
 
 
