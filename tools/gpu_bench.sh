@@ -18,7 +18,8 @@
 #       env-nocull bench env at 1024 envs without culling (every ray tests every geom: if XLA
 #                 fuses the test into the min, no candidate tables at all; 21 GB if it does not)
 #       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
-#                 steps, 32x32 camera, 8 minibatches of 8192 (and its compile time)
+#                 steps, 32x32 camera, 8 minibatches of 8192 (and its compile time), with the
+#                 estimated GB moved and implied GB/s per source and op (hlo.kernel_traffic)
 #       profilex  profile with XLA's (cuDNN) convolutions (conv=xla), against profile, whose 32x32
 #                 camera takes patch convolutions since 2026-12-04 (conv=auto): on the H200
 #                 (2026-12-04) the first cuDNN convolution's gradient took 310 ms of a 3.3 s update
@@ -30,7 +31,8 @@
 #                 XLA's / cuDNN)
 #       train128p the same with the CPU's patch convolutions (conv=patches), to weigh the two
 #       train32bf train32 with the GNN in bfloat16 (gnn_dtype=bfloat16: bf16 k / q / v tables)
-#       profilebf profile with gnn_dtype=bfloat16: where the update's time goes then
+#       profilebf profile with gnn_dtype=bfloat16: where the update's time goes then (estimated
+#                 without a GPU: the update moves 39 % fewer bytes)
 #       compile   bench compile at 1024 envs: compile seconds and HLO size per stage on this GPU
 #       trainpy   train.py as a user runs it (1024 envs x 16 steps, 8 minibatches, 2 updates,
 #                 no compile cache): init / chunk compile seconds from its log, env steps/s in
