@@ -38,7 +38,14 @@ import argparse
 import time
 
 from .common import stream_table
-from .hlo import deep_tracebacks, hlo_by_source, hlo_instructions, instruction_sources, kernel_traffic
+from .hlo import (
+    deep_tracebacks,
+    gb_moved,
+    hlo_by_source,
+    hlo_instructions,
+    instruction_sources,
+    kernel_traffic,
+)
 
 # An NVIDIA H100 SXM (80 GB) as XLA:GPU's compiler sees it (stream_executor's GpuDeviceInfoProto):
 # compute capability 9.0, 132 SMs, 228 KB of shared memory per SM (227 KB opt-in per block), 50 MB
@@ -151,7 +158,7 @@ def bench_compile(config, devices=None):
             compile_s=seconds,
             hlo_mb=len(text) / 1e6,
             instructions=hlo_instructions(text),
-            gb_moved=sum(kernel_traffic(text)[0].values()) / 1e9,
+            gb_moved=gb_moved(text),
         )
 
 

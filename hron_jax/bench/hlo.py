@@ -5,6 +5,7 @@ come from, and how many bytes its kernels move.
     instruction_sources(text) -> {name: (opcode, source, op_name)}
     hlo_by_source(text) -> {source: instructions}
     kernel_traffic(text) -> ({name: bytes per run}, loops of unknown trip count)
+    gb_moved(text) -> float                             their total in GB (NaN if unparsable)
 
 The source of an instruction is the innermost hron_jax module on its stack (`bench compile
 --by-source`, `bench profile`); stacks must be deep enough to reach our frames (`deep_tracebacks`).
@@ -146,6 +147,16 @@ def _bytes(shape: str) -> int:
     return total
 
 
+def _parameters(body: list[dict]) -> dict[str, int]:
+    """{parameter name: its index} of a computation."""
+    out = {}
+    for op in body:
+        index = re.match(r"\s*(\d+)", op["args"]) if op["opcode"] == "parameter" else None
+        if index:
+            out[op["name"]] = int(index.group(1))
+    return out
+
+
 def _parse(text: str) -> tuple[dict[str, list[dict]], str | None]:
     """{computation: [op: name, shape, opcode, operands, attrs]} and the entry computation's name."""
     comps, current, entry = {}, None, None
@@ -179,8 +190,7 @@ def _callees(op: dict) -> list[tuple[str, int]]:
     if op["opcode"] == "while":
         trips = re.search(r'"known_trip_count":\{"n":"(\d+)"', a)
         n = int(trips.group(1)) if trips else 1
-        body, condition = (re.search(rf"{k}=%([\w.\-]+)", a).group(1) for k in ("body", "condition"))
-        return [(body, n), (condition, n)]
+        return [(c, n) for c in re.findall(r"(?:body|condition)=%([\w.\-]+)", a)]
     if op["opcode"] == "call":
         return [(c, 1) for c in re.findall(r"to_apply=%([\w.\-]+)", a)]
     if op["opcode"] == "conditional":
@@ -221,10 +231,9 @@ def _fusion_reads(body: list[dict], reads: list[int]) -> list[int]:
         return memo[name]
 
     out = list(reads)
-    for op in body:
-        if op["opcode"] == "parameter" and int(op["args"]) < len(out):
-            k = int(op["args"])
-            out[k] = min(out[k], int(read(op["name"])))
+    for name, k in _parameters(body).items():
+        if k < len(out):
+            out[k] = min(out[k], int(read(name)))
     return out
 
 
@@ -233,16 +242,16 @@ def _in_place(op: dict, body: list[dict] | None, shapes: dict[str, str]) -> tupl
     or a fusion around a scatter; None for other ops. A scatter reads and writes the rows its
     updates touch: 2x its updates, at most 2x the buffer (updates that meet on one row, as the edges
     of a graph on its nodes' rows, add up in the cache); a dynamic-update-slice writes its update."""
-    if op["opcode"] == "scatter":
+    if op["opcode"] == "scatter" and len(op["operands"]) >= 3:
         target = _bytes(shapes.get(op["operands"][0], ""))
         return 0, 2 * min(_bytes(shapes.get(op["operands"][-1], "")), target)
-    if op["opcode"] == "dynamic-update-slice":
+    if op["opcode"] == "dynamic-update-slice" and len(op["operands"]) >= 2:
         return 0, _bytes(shapes.get(op["operands"][1], ""))
-    scatter = next((o for o in body or [] if o["opcode"] == "scatter"), None)
+    scatter = next((o for o in body or [] if o["opcode"] == "scatter" and o["operands"]), None)
     if scatter is None:
         return None
     local = {o["name"]: o["shape"] for o in body}
-    index = {o["name"]: int(o["args"]) for o in body if o["opcode"] == "parameter"}
+    index = _parameters(body)
     target = scatter["operands"][0]
     if target not in index:  # the updated buffer reaches the scatter through a bitcast or so
         target = next((o for o in index if _bytes(local[o]) == _bytes(op["shape"])), target)
@@ -295,9 +304,18 @@ def kernel_traffic(text: str) -> tuple[dict[str, int], int]:
                 reads = _fusion_reads(comps.get(callee.group(1), []), reads)
             body = comps.get(callee.group(1), []) if callee else None
             update = _in_place(op, body, shapes) if reads else None
-            if update is not None:
+            if update is not None and update[0] < len(reads):
                 reads[update[0]], written = 0, update[1]
             elif op["opcode"] in _WINDOWS and reads:
                 reads[0] = min(reads[0], written)
             out[op["name"]] = (written + sum(reads)) * runs[name]
     return out, unknown
+
+
+def gb_moved(text: str) -> float:
+    """`kernel_traffic`'s total in GB, NaN where a module's text defeats the parser (another XLA's
+    format): an estimate printed beside measurements must never stop them."""
+    try:
+        return sum(kernel_traffic(text)[0].values()) / 1e9
+    except Exception:
+        return float("nan")
