@@ -175,10 +175,9 @@ def _parse(text: str) -> tuple[dict[str, list[dict]], str | None]:
             depth += {"(": 1, ")": -1}.get(rest[end], 0)
             end += 1
         args = rest[: end - 1]
-        current.append(
-            dict(name=name, shape=shape, opcode=opcode, args=args, operands=re.findall(r"%([\w.\-]+)", args),
-                 attrs=rest[end:])
-        )  # fmt: skip
+        operands = re.findall(r"%([\w.\-]+)", args)
+        attrs = rest[end:]
+        current.append(dict(name=name, shape=shape, opcode=opcode, args=args, operands=operands, attrs=attrs))
     return comps, entry
 
 
