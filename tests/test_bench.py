@@ -88,8 +88,8 @@ def test_ops_without_our_frames_name_their_library(deep_stacks):
 
 
 # A module as XLA prints it: a table copied into a while loop of 7 known trips that gathers 10
-# rows of it and scatter-adds them back in place, then a loop whose trip count XLA does not know, a
-# gather from the concatenation of two tables, and a conditional.
+# rows of it, scatter-adds them back and stores them at a row (both in place), then a loop whose
+# trip count XLA does not know, a gather from the concatenation of two tables, and a conditional.
 _TRAFFIC_MODULE = """HloModule traffic
 
 %gather_rows (param_0: f32[1000,64], param_1: s32[10,1]) -> f32[10,64] {
@@ -113,6 +113,14 @@ _TRAFFIC_MODULE = """HloModule traffic
   ROOT %scatter.1 = f32[1000,64]{1,0} scatter(%param_0.1, %param_1.1, %negate.1), to_apply=%add
 }
 
+%store_rows (param_0.3: f32[1000,64], param_1.3: f32[10,64], param_2.3: s32[]) -> f32[1000,64] {
+  %param_0.3 = f32[1000,64]{1,0} parameter(0)
+  %param_1.3 = f32[10,64]{1,0} parameter(1)
+  %param_2.3 = s32[] parameter(2)
+  %zero.3 = s32[] constant(0)
+  ROOT %dus = f32[1000,64]{1,0} dynamic-update-slice(%param_0.3, %param_1.3, %param_2.3, %zero.3)
+}
+
 %body (p: (s32[], f32[1000,64])) -> (s32[], f32[1000,64]) {
   %p = (s32[], f32[1000,64]{1,0}) parameter(0)
   %i = s32[] get-tuple-element(%p), index=0
@@ -120,7 +128,8 @@ _TRAFFIC_MODULE = """HloModule traffic
   %rows = s32[10,1]{1,0} constant({...})
   %gathered = f32[10,64]{1,0} fusion(%table, %rows), kind=kLoop, calls=%gather_rows
   %scattered = f32[1000,64]{1,0} fusion(%table, %rows, %gathered), kind=kLoop, calls=%scatter_rows
-  ROOT %next = (s32[], f32[1000,64]{1,0}) tuple(%i, %scattered)
+  %stored = f32[1000,64]{1,0} fusion(%scattered, %gathered, %i), kind=kLoop, calls=%store_rows
+  ROOT %next = (s32[], f32[1000,64]{1,0}) tuple(%i, %stored)
 }
 
 %cond (q: (s32[], f32[1000,64])) -> pred[] {
@@ -182,6 +191,7 @@ def test_kernel_traffic_counts_bytes_per_run_of_every_kernel():
         'gathered': 7 * (rows + 10 * 4 + rows),
         # in place: the table is not streamed; indices and updates read, the touched rows read + written
         'scattered': 7 * (10 * 4 + rows + 2 * rows),
+        'stored': 7 * (rows + 4 + rows),  # in place too: the 10 rows stored, not the table
         'half': 2 * table + table,  # the loop of unknown trip count: once
         'picked': rows + 10 * 4 + rows,  # 10 rows gathered from the two tables' concatenation
         'exp': 2 * rows,  # both branches of the conditional: an upper bound

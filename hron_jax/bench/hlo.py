@@ -238,23 +238,28 @@ def _fusion_reads(body: list[dict], reads: list[int]) -> list[int]:
 
 def _in_place(op: dict, body: list[dict] | None, shapes: dict[str, str]) -> tuple[int, int] | None:
     """(index of the operand updated in place, bytes written) of a scatter, a dynamic-update-slice
-    or a fusion around a scatter; None for other ops. A scatter reads and writes the rows its
+    or a fusion around one of them; None for other ops. A scatter reads and writes the rows its
     updates touch: 2x its updates, at most 2x the buffer (updates that meet on one row, as the edges
     of a graph on its nodes' rows, add up in the cache); a dynamic-update-slice writes its update."""
-    if op["opcode"] == "scatter" and len(op["operands"]) >= 3:
-        target = _bytes(shapes.get(op["operands"][0], ""))
-        return 0, 2 * min(_bytes(shapes.get(op["operands"][-1], "")), target)
-    if op["opcode"] == "dynamic-update-slice" and len(op["operands"]) >= 2:
-        return 0, _bytes(shapes.get(op["operands"][1], ""))
-    scatter = next((o for o in body or [] if o["opcode"] == "scatter" and o["operands"]), None)
-    if scatter is None:
+    if op["opcode"] in ("scatter", "dynamic-update-slice"):
+        update, local, index, target = op, shapes, None, 0
+    else:
+        updates = ("scatter", "dynamic-update-slice")
+        update = next((o for o in body or [] if o["opcode"] in updates and len(o["operands"]) > 1), None)
+        if update is None:
+            return None
+        local = {o["name"]: o["shape"] for o in body}
+        index = _parameters(body)
+        target = update["operands"][0]
+        if target not in index:  # the updated buffer reaches the op through a bitcast or so
+            target = next((o for o in index if _bytes(local[o]) == _bytes(op["shape"])), target)
+        target = index.get(target, 0)
+    if len(update["operands"]) < 2:
         return None
-    local = {o["name"]: o["shape"] for o in body}
-    index = _parameters(body)
-    target = scatter["operands"][0]
-    if target not in index:  # the updated buffer reaches the scatter through a bitcast or so
-        target = next((o for o in index if _bytes(local[o]) == _bytes(op["shape"])), target)
-    return index.get(target, 0), 2 * min(_bytes(local.get(scatter["operands"][-1], "")), _bytes(op["shape"]))
+    buffer = _bytes(local.get(update["operands"][0], "")) if index is None else _bytes(op["shape"])
+    if update["opcode"] == "dynamic-update-slice":
+        return target, _bytes(local.get(update["operands"][1], ""))
+    return target, 2 * min(_bytes(local.get(update["operands"][-1], "")), buffer)
 
 
 def kernel_traffic(text: str) -> tuple[dict[str, int], int]:
