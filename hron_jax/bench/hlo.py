@@ -238,25 +238,26 @@ def _fusion_reads(body: list[dict], reads: list[int]) -> list[int]:
 
 def _in_place(op: dict, body: list[dict] | None, shapes: dict[str, str]) -> tuple[int, int] | None:
     """(index of the operand updated in place, bytes written) of a scatter, a dynamic-update-slice
-    or a fusion around one of them; None for other ops. A scatter reads and writes the rows its
-    updates touch: 2x its updates, at most 2x the buffer (updates that meet on one row, as the edges
-    of a graph on its nodes' rows, add up in the cache); a dynamic-update-slice writes its update."""
-    if op["opcode"] in ("scatter", "dynamic-update-slice"):
-        update, local, index, target = op, shapes, None, 0
+    or a fusion (`body`) around one of them; None for other ops. A scatter reads and writes the rows
+    its updates touch: 2x its updates, at most 2x the buffer (updates that meet on one row, as the
+    edges of a graph on its nodes' rows, add up in the cache); a dynamic-update-slice writes its
+    update."""
+    updates = ("scatter", "dynamic-update-slice")
+    if op["opcode"] in updates:
+        update, local, target = op, shapes, 0
+        buffer = _bytes(shapes.get(op["operands"][0], "")) if op["operands"] else 0
     else:
-        updates = ("scatter", "dynamic-update-slice")
-        update = next((o for o in body or [] if o["opcode"] in updates and len(o["operands"]) > 1), None)
+        update = next((o for o in body or [] if o["opcode"] in updates), None)
         if update is None:
             return None
         local = {o["name"]: o["shape"] for o in body}
         index = _parameters(body)
-        target = update["operands"][0]
-        if target not in index:  # the updated buffer reaches the op through a bitcast or so
-            target = next((o for o in index if _bytes(local[o]) == _bytes(op["shape"])), target)
-        target = index.get(target, 0)
+        name = update["operands"][0] if update["operands"] else None
+        if name not in index:  # the updated buffer reaches the op through a bitcast or so
+            name = next((o for o in index if _bytes(local[o]) == _bytes(op["shape"])), name)
+        target, buffer = index.get(name, 0), _bytes(op["shape"])
     if len(update["operands"]) < 2:
         return None
-    buffer = _bytes(local.get(update["operands"][0], "")) if index is None else _bytes(op["shape"])
     if update["opcode"] == "dynamic-update-slice":
         return target, _bytes(local.get(update["operands"][1], ""))
     return target, 2 * min(_bytes(local.get(update["operands"][-1], "")), buffer)
@@ -270,8 +271,8 @@ def kernel_traffic(text: str) -> tuple[dict[str, int], int]:
     computations, conditional branches: both branches count, an upper bound) moves its result and
     its operands once, times the runs of its computation (while trip counts multiply). Exceptions:
     an operand that a fusion only gathers or slices (also through bitcasts and concatenations)
-    counts what is read of it; an in-place update (a scatter, or a fusion around one; a
-    dynamic-update-slice) does not stream the buffer it updates: it reads its other operands and
+    counts what is read of it; an in-place update (a scatter or a dynamic-update-slice, or a fusion
+    around one) does not stream the buffer it updates: it reads its other operands and
     the rows it touches, and writes those rows. Caches are otherwise ignored, so this estimates
     memory-bound work: for the HGT layers of the exploratory chunk (4096 envs x 16 steps, 8
     minibatches) it gives 7.4 TB per update, which one H200 moved in 1.92 s (3.8 TB/s of its 4.8;
@@ -304,10 +305,10 @@ def kernel_traffic(text: str) -> tuple[dict[str, int], int]:
             written = _bytes(op["shape"])
             reads = [_bytes(shapes.get(o, "")) for o in op["operands"]]
             callee = re.search(r"calls=%([\w.\-]+)", op["attrs"]) if op["opcode"] == "fusion" else None
-            if callee:
-                reads = _fusion_reads(comps.get(callee.group(1), []), reads)
-            body = comps.get(callee.group(1), []) if callee else None
-            update = _in_place(op, body, shapes) if reads else None
+            fused_body = comps.get(callee.group(1), []) if callee else None
+            if fused_body is not None:
+                reads = _fusion_reads(fused_body, reads)
+            update = _in_place(op, fused_body, shapes) if reads else None
             if update is not None and update[0] < len(reads):
                 reads[update[0]], written = 0, update[1]
             elif op["opcode"] in _WINDOWS and reads:
