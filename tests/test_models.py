@@ -34,7 +34,7 @@ from hron_jax.models import (
     mean_pool,
     task_driven_pool,
 )
-from hron_jax.models.gnn import spread_dead
+from hron_jax.models.gnn import layout_mask, merge_types, split_types, spread_dead
 from hron_jax.models.pyg_compat import gcn_params_from_pyg, hgt_params_from_pyg
 from hron_jax.models.word_vectors import load_category_vectors
 from hron_jax.scenes import vocabulary
@@ -407,6 +407,61 @@ def test_hgt_static_type_layout_drops_nodes_off_their_rows():
         with pytest.raises(ValueError, match="node_type_counts"):
             bad_layout = functools.partial(_hgt_apply, HGTConv(16, heads=2, node_type_counts=counts_bad))
             jax.eval_shape(bad_layout, params, *(lay[k] for k in _GRAPH_KEYS))
+
+
+def test_hgt_stack_on_type_tables_matches_the_node_table():
+    """Two HGT layers on per-type row tables (split once, merged once: what the scene-graph encoder
+    runs) give the outputs, attention and gradients (parameters and input) of the same layers on
+    the [B, N, F] node table, with dead rows of garbage, NaN padding rows and nodes off their
+    rows' type; tables without node_type_counts are an error."""
+    _, p1, p2, g, _ = _reference("hgt")
+    rng = np.random.default_rng(14)
+    lay, counts, _ = _type_layout(g, rng)
+    graphs = []
+    for drop in (0.0, 0.4):
+        gg = dict(lay, x=lay["x"].copy(), mask=lay["mask"] & (rng.random(len(lay["mask"])) >= drop))
+        gg["x"][~gg["mask"]] = np.nan  # dead rows: garbage must reach no value or gradient
+        gg["node_type"] = gg["node_type"].copy()
+        gg["node_type"][counts[0]] = gt.OBJECT  # a live furniture row labelled object: dropped
+        graphs.append(gg)
+    batch = {k: np.stack([gg[k] for gg in graphs]) for k in _GRAPH_KEYS}
+    layers = [HGTConv(16, heads=2, node_type_counts=counts), HGTConv(16, heads=2, node_type_counts=counts)]
+    params = [jax.tree.map(jnp.asarray, p) for p in (p1, p2)]
+    node_type, mask, senders, receivers, edge_type, edge_mask = (
+        jnp.asarray(batch[k]) for k in _GRAPH_KEYS[1:]
+    )
+    rel = edge_relations(node_type, senders, receivers, edge_type)
+    graph = (node_type, mask, senders, receivers, rel, edge_mask)
+
+    @jax.default_matmul_precision("highest")
+    def stack(params, x, tables):
+        alphas = []
+        if tables:
+            x = split_types(x, layout_mask(node_type, mask, counts), counts)
+        for layer, p in zip(layers, params):
+            x, state = layer.apply({"params": p}, x, *graph, mutable=["attention"])
+            x = jax.tree.map(jax.nn.relu, x)
+            alphas.append(state["attention"]["alpha"][0])
+        if tables:
+            x = merge_types(x, counts, *mask.shape)
+        return x, alphas
+
+    loss = lambda p, x, tables: jnp.sum(jnp.sin(stack(p, x, tables)[0]))  # noqa: E731
+    x = jnp.asarray(batch["x"])
+    (out_t, alpha_t), (out_n, alpha_n) = (
+        jax.jit(stack, static_argnums=2)(params, x, t) for t in (True, False)
+    )
+    assert np.isfinite(np.asarray(out_t)).all() and np.abs(np.asarray(out_t)).max() > 0.1
+    np.testing.assert_allclose(out_t, out_n, atol=TOL, rtol=0)
+    for a, b in zip(alpha_t, alpha_n):
+        np.testing.assert_allclose(a, b, atol=1e-6, rtol=0)
+    grads = [jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2)(params, x, t) for t in (True, False)]
+    for a, b in zip(*(jax.tree.leaves(gr) for gr in grads)):
+        assert np.isfinite(np.asarray(a)).all()
+        np.testing.assert_allclose(a, b, atol=1e-4, rtol=1e-4)
+    assert not np.asarray(grads[0][1])[:, counts[0]].any()  # the dropped row gets no gradient
+    with pytest.raises(ValueError, match="per-type row tables"):
+        HGTConv(16, heads=2).apply({"params": params[0]}, split_types(x, mask, counts), *graph)
 
 
 def test_illegal_relation_triple_is_dropped():

@@ -28,7 +28,15 @@ import numpy as np
 from hron_jax import graph_types as gt
 from hron_jax.models import pooling
 from hron_jax.models.config import ModelConfig
-from hron_jax.models.gnn import GCNConv, HGTConv, edge_relations, on_rows
+from hron_jax.models.gnn import (
+    GCNConv,
+    HGTConv,
+    edge_relations,
+    layout_mask,
+    merge_types,
+    on_rows,
+    split_types,
+)
 from hron_jax.models.lookup import Embed
 
 # PPO-style orthogonal init (PureJaxRL): sqrt(2) gain for ReLU layers.
@@ -251,7 +259,8 @@ class SceneGraphEncoder(nn.Module):
     all of them with a leading batch axis [B] (the GNN layers then run the whole batch at once).
     Output: f32[(B,) hidden + pool_flag]. Sows ('attention', 'pool_weights') f32[(B,) N] and, per
     HGT layer, ('attention', 'alpha') f32[(B,) E, heads].
-    node_type_counts: the static type layout of the env's node table, if it has one (HGTConv).
+    node_type_counts: the static type layout of the env's node table, if it has one (HGTConv); a
+    batch then runs the HGT stack on per-type row tables (gnn.split_types).
     """
 
     config: ModelConfig
@@ -276,8 +285,13 @@ class SceneGraphEncoder(nn.Module):
                 code = nn.softmax(nn.Dense(cfg.yang_image_code, name="image_code")(image_embedding))
             h = WordVectorNodeFeaturizer(cfg.hidden, name="featurizer")(word_vectors, category, mask, code)
 
+        # A batch of graphs with a static type layout goes through the HGT stack as per-type row
+        # tables, split from the node table once and merged back once (gnn.split_types).
+        counts = self.node_type_counts if cfg.gnn == "hgt" and mask.ndim == 2 else None
         if cfg.gnn == "hgt":
             relation = edge_relations(node_type, senders, receivers, edge_type)
+        if counts is not None:
+            h = split_types(h, layout_mask(node_type, mask, counts), counts)
         for i in range(cfg.gnn_layers):
             if cfg.gnn == "hgt":
                 conv = HGTConv(
@@ -292,7 +306,9 @@ class SceneGraphEncoder(nn.Module):
             else:
                 conv = GCNConv(cfg.hidden, dtype=cfg.gnn_dtype, name=f"gcn_{i}")
                 h = conv(h, mask, senders, receivers, edge_mask)
-            h = nn.relu(h)
+            h = jax.tree.map(nn.relu, h)
+        if counts is not None:
+            h = merge_types(h, counts, *mask.shape)
         h = h.astype(jnp.float32)  # pooling and everything after it in float32 (gnn_dtype)
 
         pool = (lambda f: jax.vmap(f)) if mask.ndim == 2 else (lambda f: f)  # noqa: E731
