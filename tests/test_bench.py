@@ -145,6 +145,14 @@ _TRAFFIC_MODULE = """HloModule traffic
   ROOT %gather.2 = f32[10,64]{1,0} gather(%both, %param_2.2), offset_dims={1}, slice_sizes={1,64}
 }
 
+%slice_of_product (param_0.4: f32[1000,64], param_1.4: bf16[1000,64]) -> f32[100,64] {
+  %param_0.4 = f32[1000,64]{1,0} parameter(0)
+  %param_1.4 = bf16[1000,64]{1,0} parameter(1)
+  %wide = f32[1000,64]{1,0} convert(%param_1.4)
+  %product = f32[1000,64]{1,0} multiply(%param_0.4, %wide)
+  ROOT %rows = f32[100,64]{1,0} slice(%product), slice={[200:300], [0:64]}
+}
+
 %br_a (s: f32[10,64]) -> f32[10,64] {
   %s = f32[10,64]{1,0} parameter(0)
   ROOT %exp = f32[10,64]{1,0} exponential(%s)
@@ -163,7 +171,7 @@ _TRAFFIC_MODULE = """HloModule traffic
   ROOT %next.2 = (s32[], f32[1000,64]{1,0}) tuple(%j, %half)
 }
 
-ENTRY %main (x: f32[1000,64], big: f32[3000,64], idx: s32[10,1], which: s32[]) -> (f32[1000,64], f32[10,64]) {
+ENTRY %main (x: f32[1000,64], big: f32[3000,64], idx: s32[10,1], which: s32[]) -> RESULT {
   %x = f32[1000,64]{1,0} parameter(0)
   %copy.1 = f32[1000,64]{1,0} copy(%x)
   %zero = s32[] constant(0)
@@ -176,9 +184,13 @@ ENTRY %main (x: f32[1000,64], big: f32[3000,64], idx: s32[10,1], which: s32[]) -
   %which = s32[] parameter(3)
   %picked = f32[10,64]{1,0} fusion(%out, %big, %idx), kind=kLoop, calls=%gather_concat
   %branched = f32[10,64]{1,0} conditional(%which, %picked, %picked), branch_computations={%br_a, %br_b}
-  ROOT %result = (f32[1000,64]{1,0}, f32[10,64]{1,0}) tuple(%out, %branched)
+  %halves = bf16[1000,64]{1,0} convert(%x)
+  %sliced = f32[100,64]{1,0} fusion(%x, %halves), kind=kLoop, calls=%slice_of_product
+  ROOT %result = (f32[1000,64]{1,0}, f32[10,64]{1,0}, f32[100,64]{1,0}) tuple(%out, %branched, %sliced)
 }
-""".replace('TRIPS', 'backend_config={"known_trip_count":{"n":"7"}}')
+""".replace('TRIPS', 'backend_config={"known_trip_count":{"n":"7"}}').replace(
+    'RESULT', '(f32[1000,64], f32[10,64], f32[100,64])'
+)
 
 
 def test_kernel_traffic_counts_bytes_per_run_of_every_kernel():
@@ -196,6 +208,9 @@ def test_kernel_traffic_counts_bytes_per_run_of_every_kernel():
         'picked': rows + 10 * 4 + rows,  # 10 rows gathered from the two tables' concatenation
         'exp': 2 * rows,  # both branches of the conditional: an upper bound
         'neg': 2 * rows,
+        'halves': table + table // 2,
+        # an elementwise function of two whole tables, sliced: only the 100 rows' elements are read
+        'sliced': 100 * 64 * (4 + 2) + 100 * 64 * 4,
     }
 
 

@@ -133,6 +133,14 @@ _FREE = {
     "replica-id",
 }
 _WINDOWS = ("gather", "slice", "dynamic-slice")  # ops that read only part of their first operand
+# ops whose every result element reads the same element of each operand (of the result's dims)
+_ELEMENTWISE = {
+    "abs", "add", "and", "atan2", "cbrt", "ceil", "clamp", "compare", "convert", "copy", "cosine",
+    "divide", "erf", "exponential", "exponential-minus-one", "floor", "is-finite", "log",
+    "log-plus-one", "logistic", "maximum", "minimum", "multiply", "negate", "not", "or", "power",
+    "remainder", "round-nearest-afz", "round-nearest-even", "rsqrt", "select", "sign", "sine",
+    "sqrt", "subtract", "tan", "tanh", "xor",
+}  # fmt: skip
 
 
 def _bytes(shape: str) -> int:
@@ -201,9 +209,11 @@ def _callees(op: dict) -> list[tuple[str, int]]:
 
 def _fusion_reads(body: list[dict], reads: list[int]) -> list[int]:
     """Bytes a fusion reads of each operand: one that reaches only gathers / slices / dynamic slices
-    (directly or through bitcasts and concatenations) is read as much as they yield, e.g. the rows
-    that edges gather of a node table."""
+    (directly or through bitcasts, concatenations and elementwise ops) is read as much as they
+    yield, e.g. the rows that edges gather of a node table, or one type's rows of an elementwise
+    function of whole tables."""
     local = {op["name"]: _bytes(op["shape"]) for op in body}
+    dims = {op["name"]: [d for _, d in _ARRAY.findall(op["shape"])] for op in body}
     users: dict[str, list[tuple[dict, int]]] = {}
     for op in body:
         for pos, name in enumerate(op["operands"]):
@@ -221,6 +231,8 @@ def _fusion_reads(body: list[dict], reads: list[int]) -> list[int]:
                     total += local[op["name"]]
                 elif op["opcode"] == "bitcast":
                     total += read(op["name"])
+                elif op["opcode"] in _ELEMENTWISE and dims[op["name"]] == dims[name]:
+                    total += read(op["name"]) * local[name] / max(local[op["name"]], 1)
                 elif op["opcode"] == "concatenate":
                     total += read(op["name"]) * local[name] / max(local[op["name"]], 1)
                 else:
