@@ -282,14 +282,14 @@ def kernel_traffic(text: str) -> tuple[dict[str, int], int]:
     Every op of a computation that runs as kernels (the entry, while bodies and conditions, called
     computations, conditional branches: both branches count, an upper bound) moves its result and
     its operands once, times the runs of its computation (while trip counts multiply). Exceptions:
-    an operand that a fusion only gathers or slices (also through bitcasts and concatenations)
-    counts what is read of it; an in-place update (a scatter or a dynamic-update-slice, or a fusion
-    around one) does not stream the buffer it updates: it reads its other operands and
-    the rows it touches, and writes those rows. Caches are otherwise ignored, so this estimates
-    memory-bound work: for the HGT layers of the exploratory chunk (4096 envs x 16 steps, 8
-    minibatches) it gives 7.4 TB per update, which one H200 moved in 1.92 s (3.8 TB/s of its 4.8;
-    docs/benchmarks.md), while compute-bound kernels (convolutions, the ray caster) take longer
-    than their bytes say."""
+    an operand that a fusion only gathers or slices (also through bitcasts, concatenations and
+    elementwise ops) counts what is read of it; an in-place update (a scatter or a
+    dynamic-update-slice, or a fusion around one) does not stream the buffer it updates: it reads
+    its other operands and the rows it touches, and writes those rows. Caches are otherwise
+    ignored, so this estimates memory-bound work: for the HGT layers of the exploratory chunk
+    (4096 envs x 16 steps, 8 minibatches) it gave 7.0 TB per update, which one H200 moved in
+    1.92 s (3.65 TB/s of its 4.8; docs/benchmarks.md), while compute-bound kernels (convolutions,
+    the ray caster) take longer than their bytes say."""
     comps, entry = _parse(text)
     fused = {
         c
