@@ -380,14 +380,19 @@ def _hgt_batch(
     return out.reshape(b, n, -1), alpha.reshape(b, e, heads)
 
 
+def _row_types(counts: tuple[int, ...], num_nodes: int) -> np.ndarray:
+    """i32[num_nodes]: the type of each row in the static type layout `counts` (the first counts[0]
+    rows of a graph are of type 0, the next counts[1] of type 1, ...), -1 on the padding rows."""
+    row_type = np.full(num_nodes, -1, np.int32)
+    row_type[: sum(counts)] = np.repeat(np.arange(len(counts)), counts)
+    return row_type
+
+
 def layout_mask(node_type, node_mask, counts: tuple[int, ...]):
     """bool[B, N]: node_mask, less the live nodes whose node_type is not their row's type in the
-    static type layout `counts` (the first counts[0] rows of a graph are of type 0, the next
-    counts[1] of type 1, ...; rows after them are padding), so that a table which breaks the layout
-    cannot mislabel a node: such a node is dropped, as a dead one."""
-    row_type = np.full(node_type.shape[-1], -1, np.int32)  # padding rows: -1
-    row_type[: sum(counts)] = np.repeat(np.arange(len(counts)), counts)
-    return node_mask & (node_type == row_type)
+    static type layout `counts` (`_row_types`), so that a table which breaks the layout cannot
+    mislabel a node: such a node is dropped, as a dead one."""
+    return node_mask & (node_type == _row_types(counts, node_type.shape[-1]))
 
 
 def split_types(x, node_mask, counts: tuple[int, ...]):
@@ -433,9 +438,9 @@ def _hgt_tables(
     each relation transform one matmul per (k | v, head): no permutation into type blocks, no
     per-block weight copies, no padding rows. Between layers the tables stay tables (the scene
     graph encoder splits once and merges once): slicing them out of the [B, N, F] node table and
-    concatenating them back in every layer, and the same in the gradient, was ~4 % of the bytes the
-    main model's forward + gradient moves on a GPU (estimated for an H100 at batch 8192,
-    `bench.hlo.kernel_traffic`: 243.7 -> 233.0 GB; bfloat16 146.1 -> 138.7 GB). Same values.
+    concatenating them back in every layer, and the same in the gradient, was ~4 % of the HGT
+    layers' bytes on a GPU (estimated for the 4096-env training chunk, docs/benchmarks.md, "GB
+    moved"). Same values.
     """
     b, n = node_mask.shape
     f_in = xs[0].shape[-1]
@@ -449,8 +454,6 @@ def _hgt_tables(
     rows = b * np.asarray(counts)  # rows of each type's tables
     q_off = np.concatenate([[0], np.cumsum(rows)[:-1]])  # a type's first row in the q / aggregate table
     kv_off = q_off * 2 * h * s  # ... and in the flat k | v table (rows of D)
-    row_type = np.full(n, -1, np.int32)
-    row_type[: sum(counts)] = np.repeat(np.arange(t), counts)
 
     kernel, bias = _kvq_columns(params["kqv_kernel"], f), _kvq_columns(params["kqv_bias"], f)
     w = jnp.stack([_slot_kernels(params["k_rel"], slot_rel), _slot_kernels(params["v_rel"], slot_rel)], 1)
@@ -466,7 +469,7 @@ def _hgt_tables(
 
     e = senders.shape[-1]
     graph = jnp.arange(b, dtype=senders.dtype)[:, None]
-    row_t = jnp.asarray(row_type)
+    row_t = jnp.asarray(_row_types(counts, n))
     flat = lambda a: (graph * n + a).reshape(-1)  # noqa: E731  (a node's row in the batch)
     live = live_edges(node_mask.reshape(-1), flat(senders), flat(receivers), edge_mask.reshape(-1))
     st, dt = jnp.clip(row_t[senders], 0, t - 1), jnp.clip(row_t[receivers], 0, t - 1)
@@ -566,7 +569,7 @@ class HGTConv(nn.Module):
     node_type_counts: the node table's static type layout, when it has one (the navigation envs'
     `env.node_type_counts`: rooms, furniture, objects, then padding rows): the first counts[0] rows
     of every graph are of type 0, the next counts[1] of type 1, and so on. Each type's rows of the
-    batch are then one slice (`_hgt_layout`): no sort into type blocks, no per-block weight copies,
+    batch are then one table (`_hgt_tables`): no sort into type blocks, no per-block weight copies,
     no block padding, plain matmuls; same values and parameters. A live node off its row's type
     (or a live padding row) is dropped. None (the default; the choice task's random node order):
     types are read from node_type. With node_type_counts, x may also be the batch's per-type row
