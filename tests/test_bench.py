@@ -3,8 +3,10 @@
 prepared GPU-lease script tools/gpu_bench.sh, whose every command the CLIs must accept (a bad
 option there would waste a rare lease)."""
 
+import inspect
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -57,6 +59,12 @@ def test_profiled_ops_are_attributed_to_their_source_module(tmp_path, deep_stack
         if s == 'ppo.py'
     )
     assert sum(hlo_by_source(fn.as_text()).values()) == len(sources)
+    # with lines: the same ops at file:line, and ppo.py's are lines of compute_gae
+    by_line = instruction_sources(fn.as_text(), lines=True)
+    assert all(re.sub(r':\d+', '', by_line[k][1]) == v[1] for k, v in sources.items())
+    body, first = inspect.getsourcelines(compute_gae)
+    gae = {int(s.split(':')[1]) for _, s, _ in by_line.values() if s.startswith('ppo.py:')}
+    assert len(gae) > 3 and all(first < n < first + len(body) for n in gae), (gae, first)
     # bench compile's count: the same instructions plus the parameters instruction_sources skips
     parameters = sum(' parameter(' in line for line in fn.as_text().splitlines())
     assert parameters >= 2 and hlo_instructions(fn.as_text()) == len(sources) + parameters

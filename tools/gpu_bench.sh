@@ -19,7 +19,9 @@
 #                 fuses the test into the min, no candidate tables at all; 21 GB if it does not)
 #       profile   bench profile: device ms per source module of one PPO update, 4096 envs x 16
 #                 steps, 32x32 camera, 8 minibatches of 8192 (and its compile time), with the
-#                 estimated GB moved and implied GB/s per source and op (hlo.kernel_traffic)
+#                 estimated GB moved and implied GB/s per source and op (hlo.kernel_traffic), and
+#                 per line of models/gnn.py (what docs/benchmarks.md's "GB moved" estimates: the
+#                 k / v table 35 %, attention 32 %, linears 31 % of the HGT layers' bytes)
 #       profilex  profile with XLA's (cuDNN) convolutions (conv=xla), against profile, whose 32x32
 #                 camera takes patch convolutions since 2026-12-04 (conv=auto): on the H200
 #                 (2026-12-04) the first cuDNN convolution's gradient took 310 ms of a 3.3 s update
@@ -101,7 +103,7 @@ main() {
       env-nocull) step "$(box 60)" python3 -m hron_jax.bench env --num-envs 1024 --width 128 --height 128 \
         --backends kernel-nocull --native-envs 1 --steps 10 --repeats 2 ;;
       profile) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
-        --image-size 32 --repeats 2 --top 40 ;;
+        --image-size 32 --repeats 2 --top 40 --lines models/gnn.py ;;
       profilex) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 --top 40 --model-option conv=xla ;;
       model) step "$(box 120)" python3 -m hron_jax.bench model --variants rgbd_sg_attn --batch 8192 \
@@ -111,7 +113,7 @@ main() {
       train32bf) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 --model-option gnn_dtype=bfloat16 ;;
       profilebf) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
-        --image-size 32 --repeats 2 --model-option gnn_dtype=bfloat16 ;;
+        --image-size 32 --repeats 2 --model-option gnn_dtype=bfloat16 --lines models/gnn.py ;;
       train128) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \
         --image-size 128 --repeats 2 ;;
       train128p) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 2048 \

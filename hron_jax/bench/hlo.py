@@ -28,10 +28,11 @@ def hlo_instructions(text: str) -> int:
     return sum(1 for line in text.splitlines() if _INSTRUCTION.match(line))
 
 
-def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
+def instruction_sources(text: str, lines: bool = False) -> dict[str, tuple[str, str, str]]:
     """{instruction name: (opcode, source, op_name)} of an optimised HLO module's text (op_name:
     the JAX name stack of its metadata, e.g. '.../transpose(jvp(ActorCritic))/.../scatter-add').
-    The source is the innermost hron_jax file on the instruction's stack (metadata stack frames),
+    The source is the innermost hron_jax file on the instruction's stack (metadata stack frames;
+    with `lines`, file:line, e.g. 'models/gnn.py:459'),
     'via' the library whose code emitted it when that is not ours (e.g. 'sim.py via mujoco'),
     '(no hron_jax frame) via LIB' when the stack does not reach our code (e.g. MJX kinematics
     traced inside MJX's own scans, optax; JAX drops its own frames), or "XLA's own" for what
@@ -49,10 +50,11 @@ def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
         else:
             current = None
     files = {k: v.strip('"') for k, v in sections.get("FileNames", {}).items()}
-    loc_file = {
-        k: files[int(re.search(r"file_name_id=(\d+)", v).group(1))]
-        for k, v in sections.get("FileLocations", {}).items()
-    }
+    loc_file, loc_line = {}, {}
+    for k, v in sections.get("FileLocations", {}).items():
+        loc_file[k] = files[int(re.search(r"file_name_id=(\d+)", v).group(1))]
+        line = re.search(r"\bline=(\d+)", v)
+        loc_line[k] = line.group(1) if line else "?"
     frames = {}
     for k, v in sections.get("StackFrames", {}).items():
         loc, parent = (int(x) for x in re.findall(r"=(\d+)", v)[:2])
@@ -67,7 +69,7 @@ def instruction_sources(text: str) -> dict[str, tuple[str, str, str]]:
             if inner is None:
                 inner = path
             if "/hron_jax/" in path:
-                name = path.split("/hron_jax/", 1)[1]
+                name = path.split("/hron_jax/", 1)[1] + (f":{loc_line[loc]}" if lines else "")
                 if "/hron_jax/" not in inner:
                     lib = inner.split("site-packages/", 1)[-1].split("/", 1)[0]
                     name += f" via {lib}"

@@ -18,16 +18,20 @@ the op time and the wall time is time the device waited: launches, host work, sy
 `hlo.kernel_traffic`'s estimate of the bytes those ops read and write, so GB/s near the device's
 memory bandwidth marks memory-bound code and checks the estimate that `bench compile --gpu-target`
 gives without a GPU), then the --top (default 15) most expensive ops with the end of their JAX
-name stacks, with the same two columns. The raw trace stays in --trace-dir
-when given (TensorBoard / Perfetto).
+name stacks, with the same two columns, and with --lines MODULE (e.g. models/gnn.py) the same per
+source line of that module (the op's innermost hron_jax frame there), with the line's code: which
+part of the HGT layers takes the time (docs/benchmarks.md, "GB moved", estimates it without a GPU).
+The raw trace stays in --trace-dir when given (TensorBoard / Perfetto).
 """
 
 from __future__ import annotations
 
 import argparse
 import glob
+import linecache
 import tempfile
 import time
+from pathlib import Path
 
 from .common import progress
 from .hlo import deep_tracebacks, instruction_sources, kernel_traffic
@@ -63,10 +67,13 @@ def op_times(xplane_path: str) -> dict[str, float]:
     return out
 
 
-def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=progress) -> dict:
+def profile_update(
+    config, repeats: int = 2, trace_dir: str | None = None, log=progress, lines: str | None = None
+) -> dict:
     """{wall_s (best untraced update), rows: [(source, seconds of the traced update, ops, bytes
     moved)], ops: [(instruction, seconds, source, op_name, bytes moved)] most expensive first,
-    trace (path)}; bytes moved: `kernel_traffic`'s estimate per update."""
+    lines: the rows of the source lines of module `lines` ('models/gnn.py:459', ...; [] without
+    it), trace (path)}; bytes moved: `kernel_traffic`'s estimate per update."""
     import jax
 
     from ..training import programs, seed_keys
@@ -77,6 +84,7 @@ def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=p
     fn, t_compile = prog.compiled_chunk(1)
     log(f"compiled the chunk in {t_compile:.1f} s")
     sources = instruction_sources(fn.as_text() or "")
+    at_line = instruction_sources(fn.as_text() or "", lines=True) if lines else {}
     try:
         moved, _ = kernel_traffic(fn.as_text() or "")
     except Exception as e:  # an estimate beside the measurement: never lose a profile to it
@@ -93,6 +101,7 @@ def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=p
         runner, _ = jax.block_until_ready(fn(runner))
     path = sorted(glob.glob(f"{trace_dir}/**/*.xplane.pb", recursive=True))[-1]
     per_source: dict[str, list] = {}
+    per_line: dict[str, list] = {}
     ops = []
     for name, seconds in op_times(path).items():
         opcode, source, op_name = sources.get(name, ("?", "(not in the chunk)", ""))
@@ -103,15 +112,27 @@ def profile_update(config, repeats: int = 2, trace_dir: str | None = None, log=p
         row[1] += 1
         row[2] += moved.get(name, 0)
         ops.append((name, seconds, source, op_name, moved.get(name, 0)))
+        line = at_line.get(name, ("", "", ""))[1]
+        if line.startswith(f"{lines}:"):  # our own ops of that module, not a library's via it
+            row = per_line.setdefault(line, [0.0, 0, 0])
+            row[0] += seconds
+            row[1] += 1
+            row[2] += moved.get(name, 0)
     rows = sorted(((s, t, n, b) for s, (t, n, b) in per_source.items()), key=lambda r: -r[1])
+    line_rows = sorted(((s, t, n, b) for s, (t, n, b) in per_line.items()), key=lambda r: -r[1])
     ops.sort(key=lambda r: -r[1])
-    return dict(wall_s=wall, rows=rows, ops=ops, trace=path)
+    return dict(wall_s=wall, rows=rows, ops=ops, lines=line_rows, trace=path)
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
     add_train_args(p, single_num_envs=True)
     p.add_argument("--trace-dir", help="keep the raw trace here (default: a temporary directory)")
     p.add_argument("--top", type=int, default=15, help="how many of the most expensive ops to list")
+    p.add_argument(
+        "--lines",
+        metavar="MODULE",
+        help="then ms and GB moved per source line of this module, e.g. models/gnn.py",
+    )
 
 
 def run(a: argparse.Namespace) -> None:
@@ -124,7 +145,7 @@ def run(a: argparse.Namespace) -> None:
         + (f", physics {config.env.sim.physics}" if a.task != "choice" else ""),
         flush=True,
     )
-    r = profile_update(config, a.repeats, a.trace_dir)
+    r = profile_update(config, a.repeats, a.trace_dir, lines=a.lines)
     print(f"wall {1e3 * r['wall_s']:.1f} ms per update ({batch / r['wall_s']:.0f} env steps/s)\n")
     rows = r["rows"]
     total, total_bytes = sum(row[1] for row in rows), sum(row[3] for row in rows)
@@ -142,4 +163,15 @@ def run(a: argparse.Namespace) -> None:
     print("| --- | ---: | --- | ---: | ---: | --- |")
     for name, t, source, op_name, b in r["ops"][: a.top]:
         print(f"| {name} | {1e3 * t:.2f} | {source} | {moved(b, t)} | {op_name[-90:]} |")
+    if a.lines:
+        module_time = sum(row[1] for row in r["lines"])
+        print(
+            f"\n| line of {a.lines} | ms per update | share of its op time | ops | GB moved | GB/s | code |"
+        )
+        print("| --- | ---: | ---: | ---: | ---: | ---: | --- |")
+        package = Path(__file__).resolve().parents[1]
+        for line, t, n, b in r["lines"][:30]:
+            code = linecache.getline(str(package / a.lines), int(line.rsplit(":", 1)[1])).strip()
+            share = 100 * t / module_time if module_time else 0.0
+            print(f"| {line} | {1e3 * t:.2f} | {share:.1f} % | {n} | {moved(b, t)} | `{code[:80]}` |")
     print(f"\ntrace: {r['trace']}")
