@@ -112,8 +112,8 @@ def profile_update(
         row[1] += 1
         row[2] += moved.get(name, 0)
         ops.append((name, seconds, source, op_name, moved.get(name, 0)))
-        line = at_line.get(name, ("", "", ""))[1]
-        if line.startswith(f"{lines}:"):  # our own ops of that module, not a library's via it
+        line = at_line.get(name, ("", "", ""))[1].split(" via ")[0]  # a library's ops count at our line
+        if line.startswith(f"{lines}:"):
             row = per_line.setdefault(line, [0.0, 0, 0])
             row[0] += seconds
             row[1] += 1
