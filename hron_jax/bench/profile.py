@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import glob
 import linecache
+import re
 import tempfile
 import time
 from pathlib import Path
@@ -83,8 +84,7 @@ def profile_update(
     runner = jax.block_until_ready(prog.initialize(seed_keys(config)))
     fn, t_compile = prog.compiled_chunk(1)
     log(f"compiled the chunk in {t_compile:.1f} s")
-    sources = instruction_sources(fn.as_text() or "")
-    at_line = instruction_sources(fn.as_text() or "", lines=True) if lines else {}
+    sources = instruction_sources(fn.as_text() or "", lines=True)
     try:
         moved, _ = kernel_traffic(fn.as_text() or "")
     except Exception as e:  # an estimate beside the measurement: never lose a profile to it
@@ -103,25 +103,29 @@ def profile_update(
     per_source: dict[str, list] = {}
     per_line: dict[str, list] = {}
     ops = []
-    for name, seconds in op_times(path).items():
-        opcode, source, op_name = sources.get(name, ("?", "(not in the chunk)", ""))
-        if opcode in CONTROL_FLOW:
-            continue
-        row = per_source.setdefault(source, [0.0, 0, 0])
+
+    def tally(table: dict, key: str, seconds: float, moved_bytes: int) -> None:  # one more op of key
+        row = table.setdefault(key, [0.0, 0, 0])
         row[0] += seconds
         row[1] += 1
-        row[2] += moved.get(name, 0)
+        row[2] += moved_bytes
+
+    for name, seconds in op_times(path).items():
+        opcode, at_line, op_name = sources.get(name, ("?", "(not in the chunk)", ""))
+        if opcode in CONTROL_FLOW:
+            continue
+        source = re.sub(r":[\d?]+(?= via |$)", "", at_line)  # 'sim.py:564 via mujoco' -> 'sim.py via mujoco'
+        tally(per_source, source, seconds, moved.get(name, 0))
         ops.append((name, seconds, source, op_name, moved.get(name, 0)))
-        line = at_line.get(name, ("", "", ""))[1].split(" via ")[0]  # a library's ops count at our line
-        if line.startswith(f"{lines}:"):
-            row = per_line.setdefault(line, [0.0, 0, 0])
-            row[0] += seconds
-            row[1] += 1
-            row[2] += moved.get(name, 0)
-    rows = sorted(((s, t, n, b) for s, (t, n, b) in per_source.items()), key=lambda r: -r[1])
-    line_rows = sorted(((s, t, n, b) for s, (t, n, b) in per_line.items()), key=lambda r: -r[1])
+        line = at_line.split(" via ")[0]  # a library's ops count at our line
+        if lines and line.startswith(f"{lines}:"):
+            tally(per_line, line, seconds, moved.get(name, 0))
+
+    def ranked(table: dict) -> list:  # (key, seconds, ops, bytes), most seconds first
+        return sorted(((k, t, n, b) for k, (t, n, b) in table.items()), key=lambda r: -r[1])
+
     ops.sort(key=lambda r: -r[1])
-    return dict(wall_s=wall, rows=rows, ops=ops, lines=line_rows, trace=path)
+    return dict(wall_s=wall, rows=ranked(per_source), ops=ops, lines=ranked(per_line), trace=path)
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
