@@ -97,7 +97,8 @@ def test_ops_without_our_frames_name_their_library(deep_stacks):
 
 # A module as XLA prints it: a table copied into a while loop of 7 known trips that gathers 10
 # rows of it, scatter-adds them back and stores them at a row (both in place), then a loop whose
-# trip count XLA does not know, a gather from the concatenation of two tables, and a conditional.
+# trip count XLA does not know, a gather from the concatenation of two tables, a conditional, and
+# a fusion that slices 100 rows of an elementwise product of two whole tables.
 _TRAFFIC_MODULE = """HloModule traffic
 
 %gather_rows (param_0: f32[1000,64], param_1: s32[10,1]) -> f32[10,64] {

@@ -233,9 +233,9 @@ def _fusion_reads(body: list[dict], reads: list[int]) -> list[int]:
                     total += local[op["name"]]
                 elif op["opcode"] == "bitcast":
                     total += read(op["name"])
-                elif op["opcode"] in _ELEMENTWISE and dims[op["name"]] == dims[name]:
-                    total += read(op["name"]) * local[name] / max(local[op["name"]], 1)
-                elif op["opcode"] == "concatenate":
+                elif op["opcode"] == "concatenate" or (
+                    op["opcode"] in _ELEMENTWISE and dims[op["name"]] == dims[name]
+                ):  # the share of the result that is read, of this operand
                     total += read(op["name"]) * local[name] / max(local[op["name"]], 1)
                 else:
                     total = local[name]

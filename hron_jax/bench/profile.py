@@ -84,9 +84,10 @@ def profile_update(
     runner = jax.block_until_ready(prog.initialize(seed_keys(config)))
     fn, t_compile = prog.compiled_chunk(1)
     log(f"compiled the chunk in {t_compile:.1f} s")
-    sources = instruction_sources(fn.as_text() or "", lines=True)
+    text = fn.as_text() or ""
+    sources = instruction_sources(text, lines=True)
     try:
-        moved, _ = kernel_traffic(fn.as_text() or "")
+        moved, _ = kernel_traffic(text)
     except Exception as e:  # an estimate beside the measurement: never lose a profile to it
         log(f"GB moved not estimated: kernel_traffic failed on this XLA's module text ({e!r})")
         moved = {}

@@ -624,30 +624,20 @@ class HGTConv(nn.Module):
         params = {k: v if k in ("p_rel", "skip") else v.astype(dt) for k, v in params.items()}
         x = tuple(a.astype(dt) for a in x) if tables else x.astype(dt)
         graph = (node_type, node_mask, senders, receivers, relation, edge_mask)
-        if tables:
-            if self.node_type_counts is None or len(x) != t:
-                raise ValueError(f"HGTConv takes {t} per-type row tables only with node_type_counts")
-            counts = self._counts(node_type.shape[-1])
-            mask = layout_mask(node_type, node_mask, counts)
-            out, alpha = _hgt_tables(
-                params, x, mask, *graph[2:], counts=counts, heads=h, softmax=self.softmax
-            )
-        elif self.node_type_counts is not None:
-            counts = self._counts(x.shape[-2])
-            one = x.ndim == 2  # a single graph runs as a batch of one
+        if tables and (self.node_type_counts is None or len(x) != t):
+            raise ValueError(f"HGTConv takes {t} per-type row tables only with node_type_counts")
+        if self.node_type_counts is not None:
+            one = not tables and x.ndim == 2  # a single graph runs as a batch of one
             if one:
                 x, graph = x[None], tuple(a[None] for a in graph)
+            counts = self._counts(graph[0].shape[-1])
             mask = layout_mask(graph[0], graph[1], counts)
-            outs, alpha = _hgt_tables(
-                params,
-                split_types(x, mask, counts),
-                mask,
-                *graph[2:],
-                counts=counts,
-                heads=h,
-                softmax=self.softmax,
+            xs = x if tables else split_types(x, mask, counts)
+            out, alpha = _hgt_tables(
+                params, xs, mask, *graph[2:], counts=counts, heads=h, softmax=self.softmax
             )
-            out = merge_types(outs, counts, *x.shape[:2])
+            if not tables:
+                out = merge_types(out, counts, *x.shape[:2])
             if one:
                 out, alpha = out[0], alpha[0]
         else:
