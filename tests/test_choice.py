@@ -119,7 +119,11 @@ def test_padding_masks_and_distractors(batch):
         g = _unbatch(batch.obs['graph'], i)
         valid = int(n['mask'].sum())
         assert valid == 4 + counts[i]
-        # Valid nodes first, padding after; padding is zeroed; edges only touch valid nodes.
+        # The static type layout: the two rectangles in rows 0-1, then the objects, valid ones
+        # first; padding is zeroed; edges only touch valid nodes.
+        assert DISTRACT.node_type_counts == (0, 2, 77)
+        assert (n['node_type'][:2] == GT.FURNITURE).all() and (n['category'][:2] == RECTANGLE_CLASS).all()
+        assert (n['node_type'][2:valid] == GT.OBJECT).all()
         assert n['mask'][:valid].all() and not n['mask'][valid:].any()
         assert (n['category'][valid:] == 0).all() and (n['pos'][valid:] == 0).all()
         assert n['mask'][g.senders].all() and n['mask'][g.receivers].all()
@@ -143,9 +147,12 @@ def test_layout_is_balanced_and_shuffled(batch):
     inner = batch.inner
     for bits in (inner.above_side, inner.goal_above, inner.correct_action):
         assert 0.35 < bits.mean() < 0.65
-    # Node order is random: the circles are not always in the same slots.
-    first_circle = np.argmax(batch.obs['graph'].nodes['category'] == CIRCLE_CLASS, axis=1)
+    # Node order within a type is random: the circles are not always in the same slots, nor the
+    # left rectangle (the lower x) in row 0.
+    nodes = batch.obs['graph'].nodes
+    first_circle = np.argmax(nodes['category'] == CIRCLE_CLASS, axis=1)
     assert len(np.unique(first_circle)) > 5
+    assert 0.35 < (nodes['pos'][:, 0, 0] < nodes['pos'][:, 1, 0]).mean() < 0.65
 
 
 def test_goal_encoding(batch):

@@ -276,42 +276,6 @@ def test_hgt_attention_is_a_softmax_over_live_in_edges():
     assert (sums[~has_in] == 0).all()
 
 
-def test_hgt_batch_matches_single_graphs_and_differentiates():
-    """A batch [B, ...] (run as one disjoint union, nodes grouped by type) equals B single-graph
-    calls (a different code path): outputs, attention and parameter gradients; dead rows carry
-    garbage, NaN included."""
-    d, p1, p2, g, run = _reference("hgt")
-    rng = np.random.default_rng(7)
-    graphs = [_pad(g, 5, 20, rng, garbage=gb)[0] for gb in (1.0, np.nan, 100.0)]
-    batch = {k: np.stack([gg[k] for gg in graphs]) for k in graphs[0]}
-    params = jax.tree.map(jnp.asarray, p1)
-
-    apply = jax.default_matmul_precision("highest")(functools.partial(_hgt_apply, _HGT))
-
-    def loss(p, *a):
-        return jnp.sum(jnp.sin(apply(p, *a)[0]))
-
-    def args(gg):
-        return tuple(
-            gg[k] for k in ("x", "node_type", "mask", "senders", "receivers", "edge_type", "edge_mask")
-        )
-
-    out_b, alpha_b = jax.jit(apply)(params, *args(batch))
-    grad_b = jax.jit(jax.grad(loss))(params, *args(batch))
-    one, grad_one = jax.jit(apply), jax.jit(jax.grad(loss))
-    grad_sum = None
-    for i, gg in enumerate(graphs):
-        out_1, alpha_1 = one(params, *args(gg))
-        np.testing.assert_allclose(out_b[i], out_1, atol=TOL, rtol=0)
-        np.testing.assert_allclose(alpha_b[i], alpha_1, atol=1e-6, rtol=0)
-        g1 = grad_one(params, *args(gg))
-        grad_sum = g1 if grad_sum is None else jax.tree.map(jnp.add, grad_sum, g1)
-    assert np.isfinite(np.asarray(out_b)).all()
-    for a, b in zip(jax.tree.leaves(grad_b), jax.tree.leaves(grad_sum)):
-        assert np.isfinite(np.asarray(a)).all()
-        np.testing.assert_allclose(a, b, atol=1e-4, rtol=1e-4)
-
-
 def _type_layout(g, rng, padding_rows=3):
     """g with its rows sorted by node type (rooms, furniture, objects; dead rows stay in their
     type's range) and then `padding_rows` dead rows of NaN with edges from them marked live: the
@@ -345,44 +309,56 @@ _GRAPH_KEYS = ("x", "node_type", "mask", "senders", "receivers", "edge_type", "e
 
 
 @pytest.mark.parametrize("softmax", ["joint", "per_relation"])
-def test_hgt_static_type_layout_matches_type_blocks_and_pyg(softmax):
-    """HGTConv(node_type_counts=...) slices each type's rows instead of sorting nodes into type
-    blocks: on graphs with that layout (dead rows inside the ranges, NaN padding rows after them,
-    live edges from the padding, nodes masked out at random) it gives the type-block path's
-    outputs, attention and parameter gradients, batched and single; with joint softmax, PyG's."""
+def test_hgt_static_type_layout_matches_single_graphs_and_pyg(softmax):
+    """A batch with a static type layout (HGTConv(node_type_counts=...): each type's rows one table)
+    gives, graph by graph, the outputs and attention of single-graph calls in any node order (the
+    other code path: every type and relation on every node) and the sum of their parameter
+    gradients, on graphs with dead rows of garbage (NaN included) inside the type ranges, NaN
+    padding rows after them, live edges from the padding and nodes masked out at random; one graph
+    runs as a batch of one; with joint softmax, PyG's outputs."""
     d, p1, p2, g, run = _reference("hgt")
     rng = np.random.default_rng(12)
     padded, padded_rows = _pad(g, 4, 12, rng)
     base, counts, rows = _type_layout(padded, rng)
     graphs = [base]
-    for drop in (0.2, 0.5):
+    for drop, garbage in ((0.2, 1e3), (0.5, np.nan)):
         gg = dict(base, x=base["x"].copy(), mask=base["mask"] & (rng.random(len(base["mask"])) > drop))
-        gg["x"][~gg["mask"]] = 1e3
+        gg["x"][~gg["mask"]] = garbage
         graphs.append(gg)
     batch = {k: np.stack([gg[k] for gg in graphs]) for k in _GRAPH_KEYS}
-    blocks = HGTConv(16, heads=2, softmax=softmax)
-    sliced = HGTConv(16, heads=2, softmax=softmax, node_type_counts=counts)
     params = jax.tree.map(jnp.asarray, p1)
     fns = {}
-    for name, m in (("blocks", blocks), ("sliced", sliced)):
+    for name, m in (
+        ("single", _HGT),
+        ("tables", HGTConv(16, heads=2, softmax=softmax, node_type_counts=counts)),
+    ):
+        m = m.clone(softmax=softmax)
         apply = jax.default_matmul_precision("highest")(functools.partial(_hgt_apply, m))
         loss = lambda p, *a, apply=apply: jnp.sum(jnp.sin(apply(p, *a)[0]))  # noqa: E731
         fns[name] = (jax.jit(apply), jax.jit(jax.grad(loss)))
     args = lambda gg: tuple(gg[k] for k in _GRAPH_KEYS)  # noqa: E731
-    out_b, alpha_b = fns["blocks"][0](params, *args(batch))
-    out_s, alpha_s = fns["sliced"][0](params, *args(batch))
-    assert np.isfinite(np.asarray(out_s)).all() and np.abs(np.asarray(out_s)).max() > 0.1
-    np.testing.assert_allclose(out_s, out_b, atol=TOL, rtol=0)
-    np.testing.assert_allclose(alpha_s, alpha_b, atol=1e-6, rtol=0)
-    grad_b, grad_s = (fns[k][1](params, *args(batch)) for k in ("blocks", "sliced"))
-    for a, b in zip(jax.tree.leaves(grad_s), jax.tree.leaves(grad_b)):
+    out_t, alpha_t = fns["tables"][0](params, *args(batch))
+    grad_t = fns["tables"][1](params, *args(batch))
+    assert np.isfinite(np.asarray(out_t)).all() and np.abs(np.asarray(out_t)).max() > 0.1
+    grad_sum = None
+    for i, gg in enumerate(graphs):
+        out_1, alpha_1 = fns["single"][0](params, *args(gg))
+        np.testing.assert_allclose(out_t[i], out_1, atol=TOL, rtol=0)
+        np.testing.assert_allclose(alpha_t[i], alpha_1, atol=1e-6, rtol=0)
+        g1 = fns["single"][1](params, *args(gg))
+        grad_sum = g1 if grad_sum is None else jax.tree.map(jnp.add, grad_sum, g1)
+    for a, b in zip(jax.tree.leaves(grad_t), jax.tree.leaves(grad_sum)):
         assert np.isfinite(np.asarray(a)).all()
         np.testing.assert_allclose(a, b, atol=1e-4, rtol=1e-4)
-    out_1, alpha_1 = fns["sliced"][0](params, *args(graphs[1]))  # one graph: a batch of one
-    np.testing.assert_allclose(out_1, out_b[1], atol=TOL, rtol=0)
-    np.testing.assert_allclose(alpha_1, alpha_b[1], atol=1e-6, rtol=0)
+    out_1, alpha_1 = fns["tables"][0](params, *args(graphs[1]))  # one graph: a batch of one
+    np.testing.assert_allclose(out_1, out_t[1], atol=TOL, rtol=0)
+    np.testing.assert_allclose(alpha_1, alpha_t[1], atol=1e-6, rtol=0)
+    # Without a layout a batch runs the single-graph form under vmap: the same values.
+    out_v, alpha_v = fns["single"][0](params, *args(batch))
+    np.testing.assert_allclose(out_v, out_t, atol=TOL, rtol=0)
+    np.testing.assert_allclose(alpha_v, alpha_t, atol=1e-6, rtol=0)
     if softmax == "joint":
-        np.testing.assert_allclose(np.asarray(out_s)[0][rows[padded_rows]], d["out1"], atol=TOL, rtol=0)
+        np.testing.assert_allclose(np.asarray(out_t)[0][rows[padded_rows]], d["out1"], atol=TOL, rtol=0)
 
 
 def test_hgt_static_type_layout_drops_nodes_off_their_rows():
@@ -399,8 +375,8 @@ def test_hgt_static_type_layout_drops_nodes_off_their_rows():
     params = jax.tree.map(jnp.asarray, p1)
     sliced = HGTConv(16, heads=2, node_type_counts=counts)
     out, _ = jax.jit(functools.partial(_hgt_apply, sliced))(params, *(bad[k] for k in _GRAPH_KEYS))
-    blocks = jax.jit(functools.partial(_hgt_apply, HGTConv(16, heads=2)))
-    ref, _ = blocks(params, *(expected[k] for k in _GRAPH_KEYS))
+    single = jax.jit(functools.partial(_hgt_apply, _HGT))
+    ref, _ = single(params, *(expected[k] for k in _GRAPH_KEYS))
     np.testing.assert_allclose(out, ref, atol=TOL, rtol=0)
     assert not np.asarray(out)[[wrong, sum(counts)]].any()
     for counts_bad in ((counts[0], counts[1]), (counts[0], counts[1], len(lay["x"]))):

@@ -25,8 +25,8 @@
 #       profilex  profile with XLA's (cuDNN) convolutions (conv=xla), against profile, whose 32x32
 #                 camera takes patch convolutions since 2026-12-04 (conv=auto): on the H200
 #                 (2026-12-04) the first cuDNN convolution's gradient took 310 ms of a 3.3 s update
-#       model     bench model: the main model's forward and fwd+grad at batch 8192 with the HGT
-#                 layers on the sliced static type layout (the default) and on type blocks
+#       model     bench model: the main model's forward and fwd+grad at batch 8192 (the HGT
+#                 layers on the scene's static type layout, as training runs them)
 #       train32   bench train: that update as train.py runs it (CUDA graphs on): env steps/s
 #       train128  bench train: the same with the 128x128 camera and 32 minibatches of 2048 (8192
 #                 need 79 GB at 128x128); convolutions as on a GPU by default (ModelConfig.conv auto:
@@ -107,7 +107,7 @@ main() {
       profilex) step "$(box 200)" python3 -m hron_jax.bench profile "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 --top 40 --model-option conv=xla ;;
       model) step "$(box 120)" python3 -m hron_jax.bench model --variants rgbd_sg_attn --batch 8192 \
-        --reps 10 --hgt-layouts sliced blocks ;;
+        --reps 10 ;;
       train32) step "$(box 240)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \
         --image-size 32 --repeats 2 ;;
       train32bf) step "$(box 180)" python3 -m hron_jax.bench train "${batch[@]}" --minibatch-size 8192 \

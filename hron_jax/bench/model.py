@@ -13,9 +13,8 @@ OS, so every call page-faults its whole working set again (measured ~0.45 ms per
 VM: 30-50 % of rgbd_sg_attn's gradient time). The CLI (like train.py and eval.py) calls
 hron_jax.cli.tune_malloc() first, which keeps that memory in the process.
 
-HGT layers: with the scene's static node layout (`node_type_counts`, each type's rows one slice, as
-training runs them); `--hgt-layouts sliced blocks` adds a row per HGT variant with nodes sorted
-into type blocks instead (the path for graphs without a static layout), side by side.
+HGT layers: with the scene's static node layout (`node_type_counts`, each type's rows one table, as
+training runs them).
 
 Prints: the batch's graph sizes, each variant's compile time (stderr) as it compiles, then (all rows
 finish together, round robin) the Markdown table | variant | forward ms | fwd+grad ms | fwd / gcn |
@@ -70,21 +69,16 @@ def model_inputs(batch: int = 64, scene_path: str = DEFAULT_SCENE, image: int = 
     return obs, gb
 
 
-HGT_LAYOUTS = ("sliced", "blocks")
-
-
 def bench_model(
     variants=VARIANTS,
     batch: int = 64,
     reps: int = 20,
     scene_path: str = DEFAULT_SCENE,
     seed: int = 0,
-    hgt_layouts=("sliced",),
     log=print,
 ) -> list[dict]:
     """Rows {variant, fwd_ms, grad_ms, fwd_cpu_ms, grad_cpu_ms, compile_s} at `batch` (see the
-    module docstring); an HGT variant's row per layout of `hgt_layouts` ('sliced': the scene's
-    node_type_counts, 'blocks': none; the variant's name gets ' (blocks)')."""
+    module docstring)."""
     import jax
     import jax.numpy as jnp
 
@@ -96,16 +90,9 @@ def bench_model(
         f"(live {int(np.asarray(obs['graph'].edges['mask']).sum()) / batch:.0f}/graph)"
     )
     one = jax.tree.map(lambda a: a[0], obs)
-    runs = []
-    for name in variants:
-        cfg = make_model(name, 5).config
-        hgt = cfg.use_graph and cfg.gnn == "hgt"
-        for layout in hgt_layouts if hgt else ("sliced",):
-            counts = gb.node_type_counts if layout == "sliced" else None
-            runs.append((name if layout == "sliced" else f"{name} (blocks)", name, counts))
     fns = {}
-    for label, name, counts in runs:
-        model = make_model(name, 5, node_type_counts=counts)
+    for label in variants:
+        model = make_model(label, 5, node_type_counts=gb.node_type_counts)
         shapes = jax.eval_shape(model.init, jax.random.PRNGKey(0), one)
         r = np.random.default_rng(seed)
         variables = jax.tree.map(
@@ -166,15 +153,8 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--reps", type=int, default=20, help="timed rounds (median reported)")
     p.add_argument("--scene", default=DEFAULT_SCENE)
-    p.add_argument(
-        "--hgt-layouts",
-        nargs="+",
-        choices=HGT_LAYOUTS,
-        default=["sliced"],
-        help="HGT node layouts to time: sliced (the scene's static type layout) and/or blocks",
-    )
 
 
 def run(a: argparse.Namespace) -> None:
-    rows = bench_model(tuple(a.variants), a.batch, a.reps, a.scene, hgt_layouts=tuple(a.hgt_layouts))
+    rows = bench_model(tuple(a.variants), a.batch, a.reps, a.scene)
     print(format_model_rows(rows, a.batch), flush=True)

@@ -7,8 +7,9 @@ learner vmaps them:
     env.step(state: EnvState, action: i32[]) -> EnvState
     env.num_actions: int
     env.observation_example() -> obs pytree (one env, no batch axis)
-    env.node_type_counts: tuple[int, ...] | None, rows of obs['graph']'s node table by node type
-        when that layout is static (navigation: rooms, furniture, objects, then padding), else None
+    env.node_type_counts: tuple[int, ...], rows of obs['graph']'s node table by node type, a static
+        layout (navigation: rooms, furniture, objects, then padding; choice: no rooms, the two
+        rectangles, the objects); the HGT layers slice it (gnn.HGTConv)
 
 ``EnvState`` fields (all per env, scalars are shape ``[]``):
 

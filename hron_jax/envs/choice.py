@@ -17,9 +17,12 @@ Observation (one env):
         edges {'edge_type': i32[E], 'mask': bool[E]}, senders/receivers i32[E],
         n_node i32[1] = [N], n_edge i32[1] = [E], globals None.
         Edges: circle -> its rectangle onTop (circle above) or under (circle below), and the reverse
-        rev_onTop / rev_under. Valid nodes come first in a random order (so no model can key on slot
-        position); padding nodes have category 0, node_type 0, zero pos/size, mask False. (Padded
-        edges, where a config needs them, would point to node 0 with mask False; here E is exact.)
+        rev_onTop / rev_under. Rows by node type (`node_type_counts` = (0, 2, N - 2), the static
+        layout the HGT layers slice): the two rectangles in rows 0-1, then the objects, each type's
+        valid nodes in a random order (so no model can key on slot position) and the object rows'
+        padding after them; padding nodes have category 0, node_type 0, zero pos/size, mask False.
+        (Padded edges, where a config needs them, would point to node 0 with mask False; here E is
+        exact.)
     obs['goal']: f32[GOAL_DIM] one-hots (circle, onTop|under, rectangle, no room), hron_jax.goals.
     obs['goal_classes']: i32[3] = class ids (circle, rectangle, -1).
     obs['rgb'] (only with ``image_obs=True``): f32[S, S, 3] in [0, 1], a rasterised view of the canvas
@@ -180,10 +183,14 @@ class ChoiceEnv:
     """Relational object choice bandit; functional API of hron_jax.envs.base."""
 
     num_actions = 2
-    node_type_counts = None  # nodes in a random order: no static type layout (envs.base)
 
     def __init__(self, config: ChoiceConfig = ChoiceConfig()):
         self.config = config
+
+    @property
+    def node_type_counts(self) -> tuple[int, int, int]:
+        """The node table's static type layout (envs.base): no rooms, 2 rectangles, the objects."""
+        return (0, 2, self.config.num_nodes - 2)
 
     # -- scene ---------------------------------------------------------------------------------
     def reset_to(self, rng, above_side, goal_above) -> EnvState:
@@ -222,9 +229,11 @@ class ChoiceEnv:
         receivers = jnp.array([1, 0, 3, 2], jnp.int32)
         edge_type = jnp.stack([left_rel, rev(left_rel), right_rel, rev(right_rel)]).astype(jnp.int32)
 
-        # Shuffle: valid nodes first in random order, padding after.
+        # Shuffle within the type layout: rectangles, then valid objects, then padding, each in a
+        # random order.
         n = cfg.num_nodes
-        order = jnp.argsort(jax.random.uniform(k_perm, (n,)) + 2.0 * (~mask))  # new slot -> old
+        group = jnp.where(mask, jnp.where(ntype == GT.OBJECT, 1.0, 0.0), 2.0)
+        order = jnp.argsort(jax.random.uniform(k_perm, (n,)) + group)  # new slot -> old
         inv = jnp.zeros(n, jnp.int32).at[order].set(jnp.arange(n, dtype=jnp.int32))  # old -> new
         nodes = {
             'category': cat[order],

@@ -1,10 +1,10 @@
 """Graph layers on jraph-style padded graphs: HGT (heterogeneous graph transformer) and GCN.
 
 Both layers work on ONE padded graph stored as flat tables, or on a batch of such graphs with a
-leading [B] axis on every table (the fast path for HGTConv, which runs the batch as one
-disjoint-union graph; calling the single-graph form under `jax.vmap` also works; a batch whose node
-table has a static type layout can also pass through a stack of HGT layers as one row table per
-node type, `split_types` / `merge_types`):
+leading [B] axis on every table. HGTConv's fast path is a batch whose node table has a static type
+layout (`node_type_counts`, which every env's has): each type's rows of the batch form one table,
+and a stack of HGT layers can pass them on as one row table per node type (`split_types` /
+`merge_types`); a batch without a layout runs the single-graph form under `jax.vmap`:
 
     x          f32[N, F_in]   node features (one table for every node type)
     node_type  i32[N]         0 room, 1 furniture, 2 object (see hron_jax.graph_types)
@@ -142,7 +142,7 @@ def _softmax_groups(receivers, relation, num_nodes: int, num_relations: int, sof
 
 
 # ---------------------------------------------------------------------------------------------
-# HGT internals: nodes grouped by type in blocks, relation transforms per source-type slot
+# HGT internals: relation transforms per source-type slot; one graph, or per-type row tables
 
 
 @functools.cache
@@ -171,44 +171,6 @@ def _relation_slots(num_node_types: int, num_relations: int):
         slot_rel[tau, : len(rels)] = rels
         rel_slot[rels] = np.arange(len(rels))
     return slot_rel, rel_slot, rel_src
-
-
-def _block_size(num_nodes: int) -> int:
-    """Rows per type block: a power of two in [8, 256], about num_nodes / 32 (static).
-
-    Bigger blocks make fewer (larger, more efficient) matmuls and fewer per-block weight copies,
-    but waste up to T x (block - 1) padding rows.
-    """
-    c = 8
-    while c < 256 and 32 * c <= num_nodes:
-        c *= 2
-    return c
-
-
-def _type_blocks(node_type, num_types: int, block: int):
-    """Row layout that groups the nodes by type in blocks of `block` rows of a single type.
-
-    node_type i32[M] in [0, T). Returns pos i32[M] (row of each node), src i32[nb * block] (node
-    of each row, M on padding rows), blk_type i32[nb] (type of each block), nb (static: the
-    capacity M + T (block - 1) rounded up; blocks past the last type are padding).
-    """
-    m = node_type.shape[0]
-    onehot = (node_type[:, None] == jnp.arange(num_types)).astype(jnp.int32)
-    padded = (jnp.sum(onehot, 0) + block - 1) // block * block
-    end = jnp.cumsum(padded)
-    rank = jnp.sum(jnp.cumsum(onehot, 0) * onehot, 1) - 1  # rank among the nodes of its type
-    pos = (end - padded)[node_type] + rank
-    nb = -(-(m + num_types * (block - 1)) // block)
-    src = (
-        jnp.full((nb * block,), m, jnp.int32).at[pos].set(jnp.arange(m, dtype=jnp.int32), unique_indices=True)
-    )
-    blk_type = jnp.minimum(jnp.sum(jnp.arange(nb)[:, None] * block >= end[None, :], 1), num_types - 1)
-    return pos, src, blk_type, nb
-
-
-def _block_dense(xb, blk_type, kernel, bias):
-    """Per-type affine map on type blocks: xb f32[nb, C, I], kernel [T, I, O] -> f32[nb, C, O]."""
-    return jnp.einsum("bci,bio->bco", xb, take_rows(kernel, blk_type)) + take_rows(bias, blk_type)[:, None, :]
 
 
 def _slot_kernels(rel_kernel, slot_rel):
@@ -253,76 +215,16 @@ def _attend(p_rel, q_e, k_e, v_e, rel, live, dst, rows: int, softmax: str):
     return jax.nn.gelu(agg, approximate=False), alpha
 
 
-def _hgt(
-    params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int, softmax: str
-):
-    """HGTConv on one graph (or a disjoint union of graphs): returns (out f32[N, F], alpha f32[E, H]).
-
-    Layout: nodes are permuted into blocks of a single type (`_type_blocks`), so every per-type
-    linear is a batched matmul with one weight per block instead of all T types on every node,
-    and every node's key / value gets only the S relation transforms of its type (as a source)
-    instead of all R. Edges stay in their order and gather whole rows from those tables.
-    """
-    n, f_in = x.shape
-    t, _, f3 = params["kqv_kernel"].shape
-    f = f3 // 3
-    h, d = heads, f3 // 3 // heads
-    r = params["k_rel"].shape[0]
-    slot_rel, rel_slot, rel_src = _relation_slots(t, r)
-    s = slot_rel.shape[1]
-    c = _block_size(n)
-
-    ntype = jnp.clip(node_type, 0, t - 1)
-    live = live_edges(node_mask, senders, receivers, edge_mask)
-    live, rel = _relation_edges(live, relation, ntype[senders], r, rel_src)
-
-    pos, src, blk_type, nb = _type_blocks(ntype, t, c)
-    rows = nb * c
-    # Dead rows are zeroed first, so garbage (even NaN) there reaches no value or gradient.
-    x0 = jnp.where(node_mask[:, None], x, 0.0)
-    xb = jnp.concatenate([x0, jnp.zeros((1, f_in), x0.dtype)])[src].reshape(nb, c, f_in)
-    kvq_out = _block_dense(
-        xb, blk_type, _kvq_columns(params["kqv_kernel"], f), _kvq_columns(params["kqv_bias"], f)
-    )
-    kv = kvq_out[..., : 2 * f].reshape(nb, c, 2, h, d)
-    q = kvq_out[..., 2 * f :].reshape(rows, h, d)
-
-    # Relation transforms of every node's key and value for the S relations it is a source of:
-    # per block, (k | v) x head: [C, D] @ [D, S * D]. The result stays in the matmul's own layout
-    # [nb, 2 H, C, S D]; each edge gathers its 2 H rows of D (no transposed copy of the table).
-    w = take_rows(
-        jnp.stack([_slot_kernels(params["k_rel"], slot_rel), _slot_kernels(params["v_rel"], slot_rel)], 1),
-        blk_type,
-    )  # [nb, 2, H, D, S*D]
-    kvt = jnp.einsum("bcjhd,bjhde->bjhce", kv, w)  # [nb, 2, H, C, S*D]
-    ps, pd = pos[spread_dead(senders, live, n)], pos[spread_dead(receivers, live, n)]
-    # Row of (block, k|v, head, c) in kvt for each edge and head, then its slot's D columns.
-    base = ((ps // c)[:, None] * (2 * h) + jnp.arange(h, dtype=ps.dtype)) * c + (ps % c)[:, None]
-    slot = jnp.asarray(rel_slot)[rel][:, None]
-    table = kvt.reshape(-1, d)
-    k_e = table[base * s + slot]  # [E, H, D]
-    v_e = table[(base + h * c) * s + slot]
-    a, alpha = _attend(params["p_rel"], q[pd], k_e, v_e, rel, live, pd, rows, softmax)
-    out = _block_dense(
-        a.astype(x.dtype).reshape(nb, c, f), blk_type, params["out_kernel"], params["out_bias"]
-    )
-    if f_in == f:
-        gate = jax.nn.sigmoid(take_rows(params["skip"], blk_type))[:, None, None]
-        out = gate * out + (1.0 - gate) * xb
-    out = out.reshape(rows, f)[pos]
-    return jnp.where(node_mask[:, None], out, 0.0).astype(x.dtype), alpha
-
-
 def _hgt_single(
     params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int, softmax: str
 ):
-    """HGTConv on ONE graph without any permutation: (out f32[N, F], alpha f32[E, H]).
+    """HGTConv on ONE graph in any node order: (out f32[N, F], alpha f32[E, H]).
 
     Every per-type linear runs all T types on every node and selects (an input-side one-hot: one
-    [N, T F_in] @ [T F_in, O] matmul), and keys / values get all R relation transforms. That is
-    T x and R / S x the work of `_hgt`, but it has no per-block weight copies, so it stays cheap
-    when someone else vmaps it over graphs (the weights are then shared, not copied per graph).
-    Used for unbatched calls; identical results to `_hgt`.
+    [N, T F_in] @ [T F_in, O] matmul), and keys / values get all R relation transforms: T x and
+    R / S x the matmul work of `_hgt_tables`. For graphs without a static type layout (a batch
+    vmaps it: the weights are shared, not copied per graph), and the form the tables are tested
+    against.
     """
     n, f_in = x.shape
     t, _, f3 = params["kqv_kernel"].shape
@@ -355,29 +257,6 @@ def _hgt_single(
         gate = jax.nn.sigmoid(onehot.astype(jnp.float32) @ params["skip"])[:, None]
         out = gate * out + (1.0 - gate) * x0
     return jnp.where(node_mask[:, None], out, 0.0).astype(x.dtype), alpha
-
-
-def _hgt_batch(
-    params, x, node_type, node_mask, senders, receivers, relation, edge_mask, *, heads: int, softmax: str
-):
-    """`_hgt` on a batch of graphs [B, N, ...] / [B, E] run as ONE disjoint-union graph, so the type
-    blocks span the batch (large matmuls, padding paid once per batch, not per graph)."""
-    b, n = node_type.shape
-    e = senders.shape[-1]
-    offset = (jnp.arange(b, dtype=senders.dtype) * n)[:, None]
-    out, alpha = _hgt(
-        params,
-        x.reshape(b * n, x.shape[-1]),
-        node_type.reshape(-1),
-        node_mask.reshape(-1),
-        (senders + offset).reshape(-1),
-        (receivers + offset).reshape(-1),
-        relation.reshape(-1),
-        edge_mask.reshape(-1),
-        heads=heads,
-        softmax=softmax,
-    )
-    return out.reshape(b, n, -1), alpha.reshape(b, e, heads)
 
 
 def _row_types(counts: tuple[int, ...], num_nodes: int) -> np.ndarray:
@@ -431,12 +310,11 @@ def _hgt_tables(
     the node features as one row table per type: xs = `split_types(x, node_mask, counts)`, rows of
     dead nodes zero. node_mask [B, N] already `layout_mask`ed, the edges [B, E]. Returns (outs, one
     [B * counts[tau], F] table per type with dead rows zero, the next layer's input; alpha f32[B,
-    E, H]), the values of `_hgt_batch` with the same parameters (the same products and edge sums; on
-    house.xml graphs the forward is bitwise equal, gradients agree to ~4e-7 relative).
+    E, H]), the values of `_hgt_single` on each graph with the same parameters (to float rounding).
 
     A type's rows of the whole batch are one table, so each per-type linear is one plain matmul and
-    each relation transform one matmul per (k | v, head): no permutation into type blocks, no
-    per-block weight copies, no padding rows. Between layers the tables stay tables (the scene
+    each relation transform one matmul per (k | v, head): no type applied to a node of another
+    type, no permutation, no per-graph weight copies. Between layers the tables stay tables (the scene
     graph encoder splits once and merges once): slicing them out of the [B, N, F] node table and
     concatenating them back in every layer, and the same in the gradient, was ~4 % of the HGT
     layers' bytes on a GPU (estimated for the 4096-env training chunk, docs/benchmarks.md, "GB
@@ -462,7 +340,7 @@ def _hgt_tables(
         kvq = xs[tau] @ kernel[tau] + bias[tau]
         qs.append(kvq[:, 2 * f :].reshape(rows[tau], h, d))
         # The S relation transforms of each row's key and value, in the matmul's own layout
-        # [k | v, H, rows, S D]; each edge gathers its D columns (as in `_hgt`).
+        # [k | v, H, rows, S D]; each edge gathers its D columns (no transposed copy of the table).
         kv = kvq[:, : 2 * f].reshape(rows[tau], 2, h, d)
         kvts.append(jnp.einsum("njhd,jhde->jhne", kv, w[tau]).reshape(-1, d))
     q, table = jnp.concatenate(qs), jnp.concatenate(kvts)
@@ -528,7 +406,7 @@ class HGTConv(nn.Module):
     Inputs: one graph, x f32[N, F_in], node_type i32[N], node_mask bool[N], senders/receivers
         i32[E], relation i32[E] (`edge_relations`, -1 = no relation), edge_mask bool[E]; or a
         batch of graphs with a leading axis on every input (x f32[B, N, F_in], ..., senders
-        i32[B, E]), which runs as one disjoint-union graph (fast path, see Cost).
+        i32[B, E]; the fast path with node_type_counts, see Cost).
     dtype: compute dtype ('float32' or 'bfloat16', ModelConfig.gnn_dtype): x, the kernels and biases
         and so the k / q / v tables and their per-edge gathers take it; scores, softmax and the
         message sum are float32, parameters float32.
@@ -553,28 +431,23 @@ class HGTConv(nn.Module):
     edge whose sender has another type is dropped like an illegal triple. (With non-default
     num_node_types / num_relations the source types are unknown and nothing is dropped.)
 
-    Cost (see `_hgt`): the nodes are permuted into blocks of a single type, so each per-type
-    linear is one batched matmul (1 x, not T x: no type is applied to a node of another type),
-    and each node's key and value get only the S relation transforms of its type as a source
-    (S = 4 of R = 11). That is the batched path: the graphs of the batch form one disjoint union,
-    so the blocks span the batch and the per-block weight copies are amortised. A single graph
-    takes `_hgt_single` (every type and relation on every node, no permutation), which stays
-    efficient when the caller jax.vmaps it; the ActorCritic passes whole batches. For 64 house.xml
-    graphs (119 nodes, 386 edges), hidden 128, 2 heads that is 1.11 GMAC of matmul per layer
-    forward (block padding included; 1.00 with the static layout below) instead of 2.88 GMAC for
-    every type and relation on every node (`_hgt_single` vmapped; PyG, grouping by type, does about
-    as much as the blocks). Counted from the traced dot_generals; timings: `python -m
-    hron_jax.bench model`.
+    Cost: with node_type_counts (below), each type's rows of the batch are one table
+    (`_hgt_tables`), so each per-type linear is one plain matmul (no type is applied to a node of
+    another type) and each node's key and value get only the S relation transforms of its type as
+    a source (S = 4 of R = 11). For 64 house.xml graphs (119 nodes, 386 edges), hidden 128, 2
+    heads that is 1.00 GMAC of matmul per layer forward, instead of 2.88 GMAC for every type and
+    relation on every node (`_hgt_single`, which graphs without a layout take, vmapped over a
+    batch; PyG, grouping by type, does about as much as the tables). Counted from the traced
+    dot_generals; timings: `python -m hron_jax.bench model`.
 
-    node_type_counts: the node table's static type layout, when it has one (the navigation envs'
-    `env.node_type_counts`: rooms, furniture, objects, then padding rows): the first counts[0] rows
-    of every graph are of type 0, the next counts[1] of type 1, and so on. Each type's rows of the
-    batch are then one table (`_hgt_tables`): no sort into type blocks, no per-block weight copies,
-    no block padding, plain matmuls; same values and parameters. A live node off its row's type
-    (or a live padding row) is dropped. None (the default; the choice task's random node order):
-    types are read from node_type. With node_type_counts, x may also be the batch's per-type row
-    tables (`split_types`); the output is then such tables too, so a stack of layers splits the
-    node table once and merges it once (`merge_types`), as the scene-graph encoder does.
+    node_type_counts: the node table's static type layout (every env's `env.node_type_counts`;
+    navigation: rooms, furniture, objects, then padding rows): the first counts[0] rows of every
+    graph are of type 0, the next counts[1] of type 1, and so on. A live node off its row's type
+    (or a live padding row) is dropped. None (the default: graphs in any node order): types are
+    read from node_type, and each graph runs `_hgt_single`; same values and parameters. With
+    node_type_counts, x may also be the batch's per-type row tables (`split_types`); the output is
+    then such tables too, so a stack of layers splits the node table once and merges it once
+    (`merge_types`), as the scene-graph encoder does.
     """
 
     features: int
@@ -641,8 +514,8 @@ class HGTConv(nn.Module):
             if one:
                 out, alpha = out[0], alpha[0]
         else:
-            run = _hgt_batch if x.ndim == 3 else _hgt_single
-            out, alpha = run(params, x, *graph, heads=h, softmax=self.softmax)
+            run = functools.partial(_hgt_single, heads=h, softmax=self.softmax)
+            out, alpha = (jax.vmap(run, (None,) + (0,) * 7) if x.ndim == 3 else run)(params, x, *graph)
         if not self.is_initializing():  # keep init's variables free of sown values (batch-agnostic)
             self.sow("attention", "alpha", alpha)
         return out
