@@ -13,9 +13,9 @@ update. Here, on a GPU (lax.platform_dependent), that gradient is one_hot(idx, R
 a matmul at full float32 precision. On the CPU it stays the scatter-add, which XLA:CPU runs as
 one sequential pass (the matmul costs ~3x there: rgbd_sg_attn fwd+grad at batch 64 on the 2-core
 VM, `bench model`, 311 -> 403 ms), so CPU numbers are bitwise those of a plain gather.
-Used wherever a parameter table is indexed per edge, node or type block: relation priors,
-per-type kernels and gates (gnn.py), the category / node-type / map-class embeddings
-(encoders.py). Integer indices get no gradient (as with a gather).
+Used wherever a parameter table is indexed per edge or node: the HGT's relation priors (gnn.py),
+the category / node-type / map-class embeddings (encoders.py). Integer indices get no gradient (as
+with a gather).
 """
 
 from __future__ import annotations
