@@ -91,8 +91,8 @@ def bench_model(
     )
     one = jax.tree.map(lambda a: a[0], obs)
     fns = {}
-    for label in variants:
-        model = make_model(label, 5, node_type_counts=gb.node_type_counts)
+    for name in variants:
+        model = make_model(name, 5, node_type_counts=gb.node_type_counts)
         shapes = jax.eval_shape(model.init, jax.random.PRNGKey(0), one)
         r = np.random.default_rng(seed)
         variables = jax.tree.map(
@@ -108,9 +108,9 @@ def bench_model(
 
         fwd, grad = jax.jit(model.apply), jax.jit(jax.value_and_grad(loss))
         _, t = timed(lambda: (fwd(variables, obs), grad(variables, obs)))
-        progress(f"{label}: compile {t:.1f} s")
-        fns[label] = (fwd, grad, variables, t)
-    times = {label: ([], [], [], []) for label in fns}
+        progress(f"{name}: compile {t:.1f} s")
+        fns[name] = (fwd, grad, variables, t)
+    times = {name: ([], [], [], []) for name in fns}
     for _ in range(reps):
         for name, (fwd, grad, v, _) in fns.items():
             for i, f in enumerate((fwd, grad)):
