@@ -125,6 +125,9 @@ class CameraConfig:
     k_capsule: int = 4
     row_bands: int = 8  # a column's rows are culled again in this many bands (see module docstring)
     k_band: int = 12  # candidates kept per band, out of the column's
+    # how a column picks its k nearest candidates: "top_k" (lax.top_k: XLA:CPU's fast TopK call, a
+    # full sort of every column's G scores on XLA:GPU) or "rank" (no sort: see _nearest_ranked)
+    select: str = "top_k"
     ambient: float = 0.35  # Lambert shading: ambient + (1 - ambient) * max(0, n . l)
     light_dir: tuple = (0.3, 0.2, 1.0)  # world direction towards a distant light (plus a headlight)
 
@@ -298,6 +301,8 @@ class Camera:
         cfg = config
         if cfg.backend not in ("kernel", "mjx"):
             raise ValueError(f"unknown backend {cfg.backend!r}")
+        if cfg.select not in ("top_k", "rank"):
+            raise ValueError(f"CameraConfig.select: unknown {cfg.select!r}; expected 'top_k' or 'rank'")
         self.config = cfg
         self.mj_model = m
         self.exclude_body = int(exclude_body)
@@ -462,12 +467,17 @@ class Camera:
         passed = (t_hi >= t_lo) & (y_lo[None] <= ymax) & (y_hi[None] >= -ymax)
         # materialise once: left to fusion, XLA recomputes the scores in every consumer
         score = jax.lax.optimization_barrier(jnp.where(passed, t_lo, jnp.inf))
-        neg, cand = jax.lax.top_k(-score, k)  # (W, k) nearest-entry candidates
+        if cfg.select == "rank":
+            neg, cand, lost = _nearest_ranked(score, k)
+        else:
+            neg, cand = jax.lax.top_k(-score, k)  # (W, k) nearest-entry candidates
+            lost = False
         # E = largest kept t_lo. A max over all k values, not neg[:, -1]: XLA:CPU maps top_k to its
         # fast TopK call only when the whole [0:k] slice is used, else it sorts all G per column
-        # (measured 10x slower).
+        # (measured 10x slower). A column whose selection lost candidates unordered certifies no ray.
         overflow = jnp.sum(jnp.isfinite(score), -1) > k
-        e = jnp.where(overflow, jnp.max(-neg, axis=-1), jnp.inf)[:, None]
+        e = jnp.where(overflow, jnp.max(-neg, axis=-1), jnp.inf)
+        e = jnp.where(lost, -jnp.inf, e)[:, None]
         th = jnp.take_along_axis(t_hi, cand, axis=1)
         return dict(cand=cand, t_lo=-neg, t_hi=th, y_lo=y_lo[cand], y_hi=y_hi[cand], e=e)
 
@@ -569,6 +579,36 @@ def _min_argmin(x: jax.Array):
     return jax.lax.reduce(
         (x, idx), (jnp.array(jnp.inf, x.dtype), jnp.array(0, jnp.int32)), pick, (x.ndim - 1,)
     )
+
+
+def _nearest_ranked(score: jax.Array, k: int):
+    """`lax.top_k(-score, k)` for rows with few finite scores, without a sort.
+
+    score f32[W, G] (+inf: not a candidate). XLA:GPU sorts every row of a top_k whose k > 16 or
+    whose rows are shorter than 1024 (a house column: 311 boxes, ~9 finite). Here a cumsum packs
+    each row's first C = min(G, 2k) finite scores, in index order, into C slots; each slot's rank
+    is a count of the slots before it in (score, index) order (C x C comparisons), and output q
+    takes the slot ranked q (C x k). Returns (-values, indices) as top_k does for every slot with
+    a finite value (padding slots: +inf values, indices not top_k's), and bool[W], rows with more
+    than C finite scores, whose dropped candidates need not be the farthest."""
+    w, g = score.shape
+    c = min(g, 2 * k)
+    finite = jnp.isfinite(score)
+    pos = jnp.cumsum(finite, axis=-1, dtype=jnp.int32) - 1  # slot of each finite score
+    slot = jnp.where(finite & (pos < c), pos, c)  # slot c takes the rest and is dropped
+    rows = jnp.arange(w)[:, None]
+    ids = jnp.broadcast_to(jnp.arange(g, dtype=jnp.int32), (w, g))
+    packed = jnp.full((w, c + 1), g, jnp.int32).at[rows, slot].set(ids)[:, :c]  # g: empty
+    vals = jnp.where(packed < g, jnp.take_along_axis(score, jnp.minimum(packed, g - 1), -1), jnp.inf)
+    order = jnp.arange(c)  # slots are in index order, so the slot breaks ties as top_k's index does
+    before = (vals[:, None, :] < vals[:, :, None]) | (
+        (vals[:, None, :] == vals[:, :, None]) & (order[None, :] < order[:, None])
+    )
+    rank = jnp.sum(before, -1, dtype=jnp.int32)  # (W, C): a permutation of 0..C-1 per row
+    pick = rank[:, :, None] == jnp.arange(k, dtype=jnp.int32)  # (W, C, k): one slot per output
+    idx = jnp.sum(jnp.where(pick, packed[:, :, None], 0), axis=1)
+    val = jnp.min(jnp.where(pick, vals[:, :, None], jnp.inf), axis=1)
+    return -val, jnp.minimum(idx, g - 1), pos[:, -1] + 1 > c
 
 
 def _bounding_box_size(gtype: int, size: jax.Array) -> jax.Array:

@@ -359,6 +359,51 @@ def test_row_bands_cull_exactly():
     assert wrong > 0 and wrong <= int(coarse.uncertain)
 
 
+def test_ranked_selection_is_top_k_without_a_sort():
+    """CameraConfig.select = 'rank' (no sort: XLA:GPU sorts every top_k of a column's candidates):
+    the same candidates in the same order as lax.top_k wherever top_k has a finite value, ties
+    going to the lower index; rows with more than 2k finite scores are flagged (lost), and a
+    camera of each kind renders the same house frames."""
+    rng = np.random.default_rng(5)
+    w, g, k = 300, 311, 32
+    n = rng.integers(0, 2 * k + 9, w)  # finite scores per row, a few past 2k
+    score = np.full((w, g), np.inf, np.float32)
+    for i in range(w):
+        score[i, rng.choice(g, n[i], replace=False)] = np.round(rng.uniform(0, 3, n[i]), 1)  # ties
+    neg, cand, lost = jax.jit(SN._nearest_ranked, static_argnums=1)(jnp.asarray(score), k)
+    ref_neg, ref_cand = jax.lax.top_k(-jnp.asarray(score), k)
+    lost, ref_neg, ref_cand = np.asarray(lost), np.asarray(ref_neg), np.asarray(ref_cand)
+    np.testing.assert_array_equal(lost, n > 2 * k)
+    assert 0 < lost.sum() < w
+    kept = ~lost
+    np.testing.assert_array_equal(np.isfinite(np.asarray(neg))[kept], np.isfinite(ref_neg)[kept])
+    real = kept[:, None] & np.isfinite(ref_neg)
+    assert real.sum() > 2000 and np.any(ref_neg[real][1:] == ref_neg[real][:-1])  # ties are tested
+    np.testing.assert_array_equal(np.asarray(neg)[real], ref_neg[real])
+    np.testing.assert_array_equal(np.asarray(cand)[real], ref_cand[real])
+
+    from hron_jax.scenes import load_scene
+
+    scene = load_scene(HOUSE)
+    m, d = _model_data(path=HOUSE)
+    rng = np.random.default_rng(6)
+    poses = []
+    for r in range(scene.num_rooms):
+        f = scene.room_floors[r][scene.room_floor_valid[r]][0]
+        poses.append([(f[0] + f[2]) / 2, (f[1] + f[3]) / 2, rng.uniform(-math.pi, math.pi)])
+    args = (jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32))
+    frames = {}
+    for select in ("top_k", "rank"):
+        cam = SN.Camera(m, SN.CameraConfig(select=select), scene.geom_instance, scene.geom_class)
+        fn = jax.jit(jax.vmap(cam.render_geoms, in_axes=(None, None, 0)))
+        frames[select] = fn(*args, jnp.asarray(poses, jnp.float32))
+    assert np.asarray(frames["top_k"].geom).max() >= 0
+    for a, b in zip(frames["top_k"], frames["rank"]):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="select"):
+        SN.Camera(m, SN.CameraConfig(select="sort"))
+
+
 def test_kernels_agree_with_mjx_primitives():
     """The three exact kernels against mjx.ray's per-geom functions on random local rays."""
     from mujoco.mjx._src import ray as mjx_ray

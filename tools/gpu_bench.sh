@@ -8,8 +8,9 @@
 #     STAGE    any of (default: all, in this order; all of them take ~20 min, more than one 15-min
 #              lease: pick, e.g. `train32 profile trainpy`)
 #       env       bench env: physics, 128x128 render, env step at 1024 / 4096 / 8192 envs, with
-#                 the row-band culled kernel (default) and one band per column (the kernel
-#                 before the bands)
+#                 the row-band culled kernel (default), the same with its candidates picked
+#                 without a sort (camera.select=rank: XLA:GPU sorts every top_k here) and one
+#                 band per column (the kernel before the bands)
 #       env-warp  bench env: physics and env step with MJX's JAX implementation and MJX-Warp at
 #                 1024 / 4096 / 8192 envs, 128x128 (needs warp-lang there, staged by
 #                 tools/gpu_stage_warp.sh; without it the stage fails with a message saying so)
@@ -94,7 +95,7 @@ main() {
   for s in "${STAGES[@]}"; do
     case $s in
       env) step "$(box 200)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
-        --height 128 --backends kernel kernel-columns --collider sphere capsule --native-envs 4 \
+        --height 128 --backends kernel kernel-rank kernel-columns --collider sphere capsule --native-envs 4 \
         --steps 10 --repeats 2 ;;
       env-warp) step "$(box 200)" python3 -m hron_jax.bench env --num-envs 1024 4096 8192 --width 128 \
         --height 128 --backends kernel --physics jax warp --native-envs 4 --steps 10 --repeats 2 ;;

@@ -9,7 +9,8 @@ uniform over the 5 actions. Per num_envs B:
                 implementation, MJX-Warp = SimConfig.physics 'warp') and --collider model
     render/<b>  jit(vmap(camera.render)) on B envs, backend b in
                 kernel (column- and band-culled analytic kernel, CameraConfig.k_box /
-                k_band), kernel-columns (the same with one band per column: what the row
+                k_band), kernel-rank (the same picking candidates without a sort,
+                CameraConfig.select), kernel-columns (the same with one band per column: what the row
                 bands buy), kernel-nocull (same kernel testing every geom: what culling buys),
                 mjx (mjx.ray per pixel)
     env/<b>     physics then render, the two jitted calls back to back (what an env step costs)
@@ -278,6 +279,8 @@ def bench_env(
             cfg = base
         elif b == "kernel-columns":
             cfg = dataclasses.replace(base, row_bands=1, k_band=base.k_box)
+        elif b == "kernel-rank":
+            cfg = dataclasses.replace(base, select="rank")
         elif b == "kernel-nocull":
             cfg = dataclasses.replace(base, k_box=n_box, k_sphere=m.ngeom, k_capsule=m.ngeom, k_band=n_box)
         elif b == "mjx":
@@ -398,7 +401,7 @@ def add_args(p: argparse.ArgumentParser) -> None:
         "--backends",
         nargs="+",
         default=["kernel", "kernel-nocull", "mjx"],
-        choices=["kernel", "kernel-columns", "kernel-nocull", "mjx"],
+        choices=["kernel", "kernel-rank", "kernel-columns", "kernel-nocull", "mjx"],
     )
     p.add_argument("--native-envs", type=int, default=8)
     p.add_argument(
