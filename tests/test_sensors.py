@@ -386,17 +386,12 @@ def test_ranked_selection_is_top_k_without_a_sort():
 
     scene = load_scene(HOUSE)
     m, d = _model_data(path=HOUSE)
-    rng = np.random.default_rng(6)
-    poses = []
-    for r in range(scene.num_rooms):
-        f = scene.room_floors[r][scene.room_floor_valid[r]][0]
-        poses.append([(f[0] + f[2]) / 2, (f[1] + f[3]) / 2, rng.uniform(-math.pi, math.pi)])
     args = (jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32))
     frames = {}
     for select in ("top_k", "rank"):
         cam = SN.Camera(m, SN.CameraConfig(select=select), scene.geom_instance, scene.geom_class)
         fn = jax.jit(jax.vmap(cam.render_geoms, in_axes=(None, None, 0)))
-        frames[select] = fn(*args, jnp.asarray(poses, jnp.float32))
+        frames[select] = fn(*args, jnp.asarray(_room_centre_poses(scene)))
     assert np.asarray(frames["top_k"].geom).max() >= 0
     for a, b in zip(frames["top_k"], frames["rank"]):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -456,6 +451,16 @@ def test_vmap_equals_single_frames(primitives):
 
 
 @pytest.mark.skipif(not os.path.exists(HOUSE), reason="scenes/house.xml not present")
+def _room_centre_poses(scene) -> np.ndarray:
+    """f32[4 * rooms, 3]: every room's floor centre, four headings each."""
+    poses = []
+    for r in range(scene.num_rooms):
+        f = scene.room_floors[r][scene.room_floor_valid[r]][0]
+        for yaw in (0.3, 1.9, -1.2, 3.0):
+            poses.append([(f[0] + f[2]) / 2, (f[1] + f[3]) / 2, yaw])
+    return np.asarray(poses, np.float32)
+
+
 def test_house_views_exact_with_default_k():
     """Default CameraConfig on the house: free-space poses are certified and equal mj_ray."""
     from hron_jax.scenes import load_scene
@@ -465,13 +470,7 @@ def test_house_views_exact_with_default_k():
     cfg = SN.CameraConfig()
     cam = SN.Camera(m, cfg, scene.geom_instance, scene.geom_class)
     fn = jax.jit(jax.vmap(cam.render_geoms, in_axes=(None, None, 0)))
-    # poses: every room's floor centre, four headings each
-    poses = []
-    for r in range(scene.num_rooms):
-        f = scene.room_floors[r][scene.room_floor_valid[r]][0]
-        for yaw in (0.3, 1.9, -1.2, 3.0):
-            poses.append([(f[0] + f[2]) / 2, (f[1] + f[3]) / 2, yaw])
-    poses = np.asarray(poses, np.float32)
+    poses = _room_centre_poses(scene)
     out = fn(jnp.asarray(d.geom_xpos, jnp.float32), jnp.asarray(d.geom_xmat, jnp.float32), jnp.asarray(poses))
     assert np.all(np.asarray(out.uncertain) == 0)
     for i in range(0, len(poses), 3):
