@@ -359,6 +359,7 @@ def test_row_bands_cull_exactly():
     assert wrong > 0 and wrong <= int(coarse.uncertain)
 
 
+@pytest.mark.skipif(not os.path.exists(HOUSE), reason="scenes/house.xml not present")
 def test_ranked_selection_is_top_k_without_a_sort():
     """CameraConfig.select = 'rank' (no sort: XLA:GPU sorts every top_k of a column's candidates):
     the same candidates in the same order as lax.top_k wherever top_k has a finite value, ties
@@ -450,7 +451,6 @@ def test_vmap_equals_single_frames(primitives):
 # ------------------------------------------------------------------ house + simulator integration
 
 
-@pytest.mark.skipif(not os.path.exists(HOUSE), reason="scenes/house.xml not present")
 def _room_centre_poses(scene) -> np.ndarray:
     """f32[4 * rooms, 3]: every room's floor centre, four headings each."""
     poses = []
@@ -461,6 +461,7 @@ def _room_centre_poses(scene) -> np.ndarray:
     return np.asarray(poses, np.float32)
 
 
+@pytest.mark.skipif(not os.path.exists(HOUSE), reason="scenes/house.xml not present")
 def test_house_views_exact_with_default_k():
     """Default CameraConfig on the house: free-space poses are certified and equal mj_ray."""
     from hron_jax.scenes import load_scene
