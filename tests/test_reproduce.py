@@ -34,10 +34,12 @@ from hron_jax.reproduction.report import (
 from hron_jax.reproduction.runs import (
     ARCHIVED,
     collect_cell,
+    default_runs,
     eval_json,
     held_out_dir,
     mean_std,
     reference_dir,
+    repo_relative,
 )
 from hron_jax.run_config import run_label
 
@@ -124,11 +126,19 @@ def test_report_from_runs(cli, tmp_path):
     assert 'paper model' not in text and "= the paper's settings" not in row
     assert 'SG + TD ATTN + distractors: 0: 1.000, 1: 0.900, 2: 0.800' in text
     assert (out.parent / 'reproduction' / 'table1_curves.png').is_file()
-    # Cells without runs are listed as not run, with the paper profile's commands; nothing is
-    # invented, and an estimate from runs under other settings says so.
-    assert text.count('not yet run') >= 2 * 15
-    assert 'python train.py --task exploratory --model rgbd_sg_attn --seed $SEED --preset paper' in text
-    assert 'measured with preset default' in text and 'a rough figure' in text
+    # The table's cells without runs are listed as not run, with the paper profile's commands;
+    # nothing is invented, and an estimate from runs under other settings says so. A table without
+    # any run says so in one line and points to --plan (which lists its commands).
+    table1 = text.split('## Table I:')[1].split('## Table II:')[0]
+    assert table1.count('| not yet run |') == 3
+    assert 'python train.py --task choice --model rgbd_sg --seed $SEED --distractors --preset paper' in table1
+    assert 'measured with preset default' in table1 and 'a rough figure' in table1
+    for table in (2, 3):
+        assert (
+            f'No runs of this table under `{runs}`. `python tools/reproduce.py --plan --tables {table}`'
+            in text
+        )
+    assert 'not yet run' not in text.split('## Table II:')[1]
     # The protocol names the paper's settings, and the cpu profile says it is not them.
     assert '`train.py --preset paper` (navigation: camera 128x128; HGT hidden 128, 2 heads, 3 layers' in text
     assert "Profile `cpu`, not the paper's settings" in text
@@ -372,6 +382,46 @@ def test_a_shorter_run_is_resumed_to_the_profile_budget(tmp_path, monkeypatch):
     (d / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
     runner.run_cell_seed(cell, 0, runs, 'cpu', 20)
     assert calls == []
+
+
+def test_a_second_report_has_its_own_runs_archive_and_figures(cli, tmp_path):
+    """Runs of another budget (here the paper's 1.5 M env steps) make a report of their own: its
+    archive and figures lie in the folder named as it, its runs default to runs/<its name>, and the
+    first report's folder is left as it was; its note says every row ran the paper's budget."""
+    docs, cell = tmp_path / 'docs', 'directed_rgbd_sg_attn_dist'
+    first, second = docs / 'reproduction.md', docs / 'full_budget.md'
+    fake_run(tmp_path / 'runs_a' / cell / 's0', 0, 0.9, 0.7, task='directed')
+    full = tmp_path / 'runs_b' / cell / 's0'
+    fake_run(full, 0, 1.0, 0.9, task='directed', total_steps=1_500_000)
+    rows = [json.loads(l) for l in (full / 'metrics.jsonl').read_text().splitlines()]
+    rows[-1]['env_steps'] = 1_500_000
+    (full / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
+
+    assert cli.main(['--from-runs', '--runs', str(tmp_path / 'runs_a'), '--out', str(first)]) == 0
+    folder = lambda: {p: p.read_bytes() for p in (docs / 'reproduction').rglob('*') if p.is_file()}
+    before = folder()
+    assert docs / 'reproduction' / 'table2_curves.png' in before
+    assert cli.main(['--from-runs', '--runs', str(tmp_path / 'runs_b'), '--out', str(second)]) == 0
+    assert folder() == before  # neither its figures nor its archive touched
+    assert (docs / 'full_budget' / 'table2_curves.png').is_file()
+    assert (docs / 'full_budget' / 'runs' / cell / 's0' / 'eval_trained' / 'eval.json').is_file()
+    row = lambda p: next(
+        l for l in p.read_text().splitlines() if l.startswith('| yes | RGB-D + SG + TD ATTN |')
+    )
+    assert '| 0.900 (n=1, no spread) |' in row(first) and '| 1,024 |' in row(first)
+    assert '| 1.000 (n=1, no spread) |' in row(second) and '| 1,500,000 |' in row(second)
+    text, table2 = second.read_text(), lambda t: t.split('## Table II:')[1].split('## Table III:')[0]
+    assert (
+        "Notes. (1) Budget and settings: every row with runs ran the paper's 1,500,000 env steps per seed"
+        in text
+    )
+    assert 'early learning' not in table2(text) and 'early learning' in table2(first.read_text())
+    assert f'python tools/reproduce.py --from-runs --out {repo_relative(second)} ' in text
+    # The commands of its cells without runs write into its own run dirs.
+    assert f'--out {repo_relative(tmp_path / "runs_b")}/directed_rgbd/s$SEED && python eval.py' in text
+    # Without --runs each report reads (and restores its archive into) run dirs of its own.
+    assert default_runs(ROOT / 'docs' / 'reproduction.md') == ROOT.resolve() / 'runs' / 'repro'
+    assert default_runs(second) == ROOT.resolve() / 'runs' / 'full_budget'
 
 
 def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_checkout(

@@ -46,9 +46,10 @@ from hron_jax.reproduction.runner import (  # noqa: E402
     run_references,
 )
 from hron_jax.reproduction.runs import (  # noqa: E402
-    ROOT,
+    DEFAULT_REPORT,
     archive_of,
     cell_runs,
+    default_runs,
     eval_argv,
     eval_json,
     num_seeds_of,
@@ -104,8 +105,16 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help='eval episodes per seed (default: 200 for choice, the paper\'s 20 for navigation)',
     )
-    p.add_argument('--runs', default=str(ROOT / 'runs' / 'repro'))
-    p.add_argument('--out', default=str(ROOT / 'docs' / 'reproduction.md'))
+    p.add_argument(
+        '--runs',
+        help='run dirs of the report (default: runs/repro for docs/reproduction.md, else runs/<name '
+        "of --out>: another report's archive is restored into runs of its own, not mixed with these)",
+    )
+    p.add_argument(
+        '--out',
+        default=str(DEFAULT_REPORT),
+        help='the report; its figures and run archive go in the folder of its name (docs/reproduction/)',
+    )
     g = p.add_argument_group(f'in-process profiles ({", ".join(IN_PROCESS)})')
     g.add_argument(
         '--total-steps',
@@ -132,7 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     p = build_parser()
     a = p.parse_args(argv)
-    runs, out = Path(a.runs), Path(a.out)
+    out = Path(a.out)
+    runs = Path(a.runs) if a.runs else default_runs(out)
     in_process = a.profile in IN_PROCESS
     if a.seeds is None:
         a.seeds = profile_config(a.profile, main_cell('choice')).num_seeds if in_process else 3

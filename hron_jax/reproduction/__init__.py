@@ -31,10 +31,13 @@ single-seed run is by construction identical to seed i of a multi-seed one (hron
 its seeds).
 
 Archive (runs.py): the report at OUT keeps its runs' small files (config, metrics, evaluations;
-ARCHIVED) in git at <OUT's dir>/reproduction/runs. Every call (but --plan / --probe) first
-restores the archived runs RUNS lacks, which count as done, and the report's writer saves every
-run of RUNS back: a fresh checkout (runs/ is not in git) regenerates the report and adds seeds to
-it without retraining what is archived.
+ARCHIVED) in git in the folder named as OUT, <OUT without .md>/runs, beside its figures (so
+docs/reproduction.md: docs/reproduction/runs). Every call (but --plan / --probe) first restores
+the archived runs RUNS lacks, which count as done, and the report's writer saves every run of RUNS
+back: a fresh checkout (runs/ is not in git) regenerates the report and adds seeds to it without
+retraining what is archived. Each report has its own folder and, unless --runs says otherwise,
+its own RUNS (runs/repro for docs/reproduction.md, else runs/<OUT's name>): a report of other runs
+(e.g. docs/reproduction_full_budget.md, runs at the paper's 1.5 M env steps) mixes with no other.
 
 In-process profiles ('gpu', 'tiny'; runner.run_cells_in_process): one process trains every cell as
 ONE run RUNS/<cell>/s0x<seeds> with the seeds vmapped (`train.py --num-seeds N`; hron_jax.training

@@ -6,7 +6,7 @@ PROFILE_EPISODES, PROFILE_TEXT, and the paper's budget (PAPER_BUDGET, PAPER_STEP
 profile_config(profile, cell) -> the TrainConfig its train.py command builds (train.py's own
 parser); profile_steps -> its env steps per seed; train_argv -> that train.py command. What a run
 ran, from its TrainConfig: settings -> {aspect: words}, describe_config -> one line, paper_diff ->
-the fields where it is not the paper preset. notes(table) -> the fixed notes under a table;
+the fields where it is not the paper preset. notes(table, paper_budget) -> the notes under a table;
 ordering_disagreements / ordering_sentence compare the order of our rows with the paper's. Also
 EPISODES (eval episodes per seed), HELD_OUT / TRAIN_HOUSE (the generalisation table's houses) and
 ATTENTION_CELLS.
@@ -237,8 +237,10 @@ def settings_text(cfg, graph: bool = True) -> str:
     return '; '.join(v for k, v in settings(cfg).items() if k not in drop)
 
 
-def notes(table: int) -> list[str]:
-    """Facts about the setup that reading a table needs (they do not depend on particular runs)."""
+def notes(table: int, paper_budget: bool = False) -> list[str]:
+    """Facts about the setup that reading a table needs. paper_budget: every row of the table ran
+    the paper's env steps per seed (then the navigation tables' note (1) says so instead of
+    describing the `cpu` profile's early-learning budget)."""
     cpu = {t: profile_config('cpu', main_cell(t)) for t in PAPER_STEPS}
     if table == 1:
         c = cpu['choice']
@@ -261,6 +263,13 @@ def notes(table: int) -> list[str]:
             '(after ~56,000 env steps) and in none at 1e-4 within this budget; trained to the task '
             "default's 200,000 env steps at 1e-4, three vmapped SG seeds left it at ~148,000-189,000, "
             'so without attention the task is learned later, not never (hron_jax/run_config.py).'
+        ]
+    if paper_budget and table > 1:
+        return [
+            "Notes. (1) Budget and settings: every row with runs ran the paper's "
+            f"{PAPER_STEPS['directed' if table == 2 else 'exploratory']:,} env steps "
+            "per seed, with the settings of its Config column (the paper's settings are `train.py "
+            "--preset paper`)."
         ]
     if table == 2:
         c = cpu['directed']

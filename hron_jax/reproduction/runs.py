@@ -6,8 +6,10 @@ evaluations in held-out houses beside it (held_out_dir), the random policy's eva
 RUNS/_reference (reference_dir) and probe runs under RUNS/_probe/<cell>. ROOT is the repository
 root, where train.py and eval.py run (repo_relative: a path relative to it, for the report and messages).
 
-The archive: the ARCHIVED files of every run, in git beside the report (archive_of(out));
-restore_runs copies the archived runs RUNS lacks into it, save_runs copies RUNS's into the archive.
+The archive: the ARCHIVED files of every run, in git beside the report (archive_of(out), in the
+report's own folder report_dir(out), which also holds its figures); restore_runs copies the
+archived runs RUNS lacks into it, save_runs copies RUNS's into the archive. default_runs(out): the
+run dirs a report reads unless told otherwise (each report its own, so no two mix their cells).
 
 Reading: cell_runs(runs, cell) -> its run dirs; num_seeds_of, steps_per_second (measured env
 steps/s); collect_cell(runs, cell) -> a dict of its evaluated runs' per-seed SR / SPL (mean_std:
@@ -92,9 +94,26 @@ ARCHIVED = ('config.json', 'metrics.jsonl', 'repro.json', 'attention_summary.jso
 NOT_ARCHIVED_DIRS = ('checkpoints', 'corrupt_checkpoints', 'tb')
 
 
+DEFAULT_REPORT = ROOT / 'docs' / 'reproduction.md'
+
+
+def report_dir(out: Path) -> Path:
+    """The folder of the report at `out`, named as it (docs/reproduction.md: docs/reproduction):
+    its figures and, in runs/, its archive. Each report has its own, so a second report (other
+    runs, another budget) neither overwrites the first one's figures nor mixes with its runs."""
+    return Path(out).with_suffix('')
+
+
 def archive_of(out: Path) -> Path:
-    """Where the runs of the report at `out` are archived: <out's dir>/reproduction/runs."""
-    return Path(out).parent / 'reproduction' / 'runs'
+    """Where the runs of the report at `out` are archived: report_dir(out)/runs."""
+    return report_dir(out) / 'runs'
+
+
+def default_runs(out: Path) -> Path:
+    """The run dirs of the report at `out`: runs/repro for docs/reproduction.md, else runs/<its
+    name>. Its archive is restored into them, so two reports sharing them would mix their cells."""
+    out = Path(out).resolve()
+    return ROOT / 'runs' / ('repro' if out == DEFAULT_REPORT else out.stem)
 
 
 def _units(root: Path) -> list[Path]:
@@ -220,6 +239,7 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
         'spl_per_seed': spl.tolist(),
         'episodes': sorted(episodes),
         'env_steps': sorted(set(steps)),
+        'budgets': sorted({cfg.ppo.total_timesteps for _, cfg in configs}),
         'train_wall_s': float(np.mean(train_wall)) if train_wall else None,
         'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
         'steps_per_s': steps_per_second(cell_runs(runs, cell)),
