@@ -424,6 +424,22 @@ def test_a_second_report_has_its_own_runs_archive_and_figures(cli, tmp_path):
     assert default_runs(second) == ROOT.resolve() / 'runs' / 'full_budget'
 
 
+def test_a_report_inside_its_runs_does_not_archive_itself(cli, tmp_path):
+    """tools/gpu_tables.sh writes its report into RUNS/_report: the report's folder (figures,
+    archive) is then inside RUNS, and is neither a run nor archived again at the next call."""
+    runs, cell = tmp_path / 'runs', 'choice_rgbd_sg_attn_dist'
+    fake_run(runs / cell / 's0', 0, 1.0, 1.0)
+    out = runs / '_report' / 'reproduction.md'
+    for _ in range(3):  # the script's train call, its report call, a second lease's
+        assert cli.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
+    archive = runs / '_report' / 'reproduction' / 'runs'
+    assert sorted(p.relative_to(archive).parts[:2] for p in archive.rglob('*.json')) == [
+        (cell, 's0'),
+        (cell, 's0'),
+        (cell, 's0'),
+    ]  # config.json, repro.json, eval_trained/eval.json
+
+
 def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_checkout(
     cli, tmp_path, monkeypatch, capsys
 ):

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from hron_jax.paths import REPO_ROOT
-from hron_jax.reproduction.grid import Cell, describe_config, settings
+from hron_jax.reproduction.grid import GRID, Cell, describe_config, settings
 
 # ------------------------------------------------------------------------------------------------
 # The layout of RUNS
@@ -116,8 +116,15 @@ def default_runs(out: Path) -> Path:
     return ROOT / 'runs' / ('repro' if out == DEFAULT_REPORT else out.stem)
 
 
+# The folders of RUNS whose sub-folders are units; anything else there (a report written inside
+# RUNS with its own archive, as tools/gpu_tables.sh does) is not a run, and archiving it would nest
+# the archive in itself once more at every call.
+UNIT_PARENTS = frozenset(c.name for c in GRID) | {'_reference', '_probe'}
+
+
 def _units(root: Path) -> list[Path]:
-    return sorted(d for d in Path(root).glob('*/*') if d.is_dir()) if Path(root).is_dir() else []
+    root = Path(root)
+    return sorted(d for d in root.glob('*/*') if d.is_dir() and d.parent.name in UNIT_PARENTS)
 
 
 def restore_runs(archive: Path, runs: Path) -> list[str]:
