@@ -238,9 +238,9 @@ def settings_text(cfg, graph: bool = True) -> str:
 
 
 def notes(table: int, paper_budget: bool = False) -> list[str]:
-    """Facts about the setup that reading a table needs. paper_budget: every row of the table ran
-    the paper's env steps per seed (then the navigation tables' note (1) says so instead of
-    describing the `cpu` profile's early-learning budget)."""
+    """Facts about the setup that reading a table needs. paper_budget: every row of the table that
+    has runs ran the paper's env steps per seed (then the navigation tables' note (1) says so
+    instead of describing the `cpu` profile's early-learning budget)."""
     cpu = {t: profile_config('cpu', main_cell(t)) for t in PAPER_STEPS}
     if table == 1:
         c = cpu['choice']

@@ -40,13 +40,13 @@ from hron_jax.reproduction.grid import (
     train_argv,
 )
 from hron_jax.reproduction.runs import (
-    DEFAULT_REPORT,
     EVAL_DIR,
     archive_of,
     cell_runs,
     collect_cell,
     eval_json,
     held_out_dir,
+    is_main_report,
     metric_rows,
     num_seeds_of,
     reference_dir,
@@ -348,7 +348,7 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
     """Write the report of the runs under RUNS to `out` and archive their files (save_runs)."""
     figdir = report_dir(out)
     regenerate = 'python tools/reproduce.py --from-runs' + (
-        '' if Path(out).resolve() == DEFAULT_REPORT else f' --out {repo_relative(out)}'
+        '' if is_main_report(out) else f' --out {repo_relative(out)}'
     )
     lines = [
         '# Reproduction of Tables I-III',

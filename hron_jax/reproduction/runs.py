@@ -109,11 +109,15 @@ def archive_of(out: Path) -> Path:
     return report_dir(out) / 'runs'
 
 
+def is_main_report(out: Path) -> bool:
+    """Whether `out` is docs/reproduction.md (the one whose run dirs and command keep the defaults)."""
+    return Path(out).resolve() == DEFAULT_REPORT
+
+
 def default_runs(out: Path) -> Path:
     """The run dirs of the report at `out`: runs/repro for docs/reproduction.md, else runs/<its
     name>. Its archive is restored into them, so two reports sharing them would mix their cells."""
-    out = Path(out).resolve()
-    return ROOT / 'runs' / ('repro' if out == DEFAULT_REPORT else out.stem)
+    return ROOT / 'runs' / ('repro' if is_main_report(out) else Path(out).stem)
 
 
 # The folders of RUNS whose sub-folders are units; anything else there (a report written inside
