@@ -126,6 +126,13 @@ def test_report_from_runs(cli, tmp_path):
     assert 'paper model' not in text and "= the paper's settings" not in row
     assert 'SG + TD ATTN + distractors: 0: 1.000, 1: 0.900, 2: 0.800' in text
     assert (out.parent / 'reproduction' / 'table1_curves.png').is_file()
+    # Runs made by train.py alone record no load: the report names whose load it prints.
+    assert '1-min load average when this report was written [' in text
+    assert 'during the runs' not in text
+    side = runs / 'choice_rgbd_sg_attn_dist' / 's1' / 'repro.json'
+    side.write_text(json.dumps({**json.loads(side.read_text()), 'loadavg_training': [1.2, 3.4]}))
+    assert cli.main(['--from-runs', '--runs', str(runs), '--out', str(tmp_path / 'again.md')]) == 0
+    assert '1-min load average during the runs 1.2-3.4 (' in (tmp_path / 'again.md').read_text()
     # The table's cells without runs are listed as not run, with the paper profile's commands;
     # nothing is invented, and an estimate from runs under other settings says so. A table without
     # any run says so in one line and points to --plan (which lists its commands).

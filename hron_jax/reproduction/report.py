@@ -361,15 +361,25 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
     ]
     found = {c: collect_cell(runs, c) for c in GRID}
     paper_nav = profile_config('paper', main_cell('directed'))
-    m = next((f['machine'] for f in found.values() if f and f['machine']), None) or machine()
+    run_machine = next((f['machine'] for f in found.values() if f and f['machine']), None)
+    m = run_machine or machine()
     loads = [x for f in found.values() if f for x in f['loads']]
-    load_txt = f'{min(loads):.1f}-{max(loads):.1f}' if loads else str(m.get('loadavg', '?'))
+    if loads:
+        load_txt = f'during the runs {min(loads):.1f}-{max(loads):.1f}'
+    elif run_machine:
+        load_txt = f'during the runs {m.get("loadavg", "?")}'
+    else:
+        # Runs made by train.py itself carry no repro.json: only this process's machine is known.
+        load_txt = (
+            f'when this report was written {m.get("loadavg", "?")}; the runs recorded neither '
+            'machine nor load, so both are this process\'s'
+        )
     lines += [
         '## Machine and protocol',
         '',
         f'- machine: {m.get("cpu")}, {m.get("cores")} logical cores, JAX {m.get("jax", "?")} on '
-        f'{", ".join(m.get("devices", [])) or "?"}; 1-min load average during the runs '
-        f'{load_txt} (the cores are shared with other jobs: at load ~7 the same program ran '
+        f'{", ".join(m.get("devices", [])) or "?"}; 1-min load average {load_txt} '
+        '(the cores are shared with other jobs: at load ~7 the same program ran '
         '2.5x slower than at ~1, so wall times are upper bounds).',
         f'- per cell: {seeds} seeds planned (seeds 0..{seeds - 1}: separate `train.py` runs '
         'RUNS/<cell>/s<seed> with profiles cpu / paper, or one run RUNS/<cell>/s0x<seeds> with the '
