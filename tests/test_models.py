@@ -1102,6 +1102,29 @@ def test_take_rows_is_a_gather_with_a_matmul_gradient_on_gpu():
     assert (Embed(7, 4).apply(params, ids) == ref.apply(params, ids)).all()
 
 
+def test_gather_f32_sums_a_bfloat16_gradient_in_float32():
+    # lookup.gather_f32: bfloat16 rows read as float32; the gradient is the float64 sum of the
+    # cotangents rounded once to bfloat16 (a bfloat16 scatter-add rounds after every add: with
+    # 4000 cotangents on one row it drifts far from the sum); a float32 table is a plain gather.
+    from hron_jax.models.lookup import gather_f32
+
+    rng = np.random.default_rng(0)
+    table = jnp.asarray(rng.normal(size=(3, 2)), jnp.bfloat16)
+    idx = jnp.asarray(np.r_[np.zeros(4000, int), rng.integers(0, 3, size=50)], jnp.int32)
+    cot = rng.uniform(0.5, 1.5, size=(idx.shape[0], 2)).astype(np.float32)
+    out = gather_f32(table, idx)
+    assert out.dtype == jnp.float32 and (out == table[idx].astype(jnp.float32)).all()
+    grad = jax.jit(jax.grad(lambda t: jnp.sum(gather_f32(t, idx) * cot)))(table)
+    want = np.zeros((3, 2))
+    np.add.at(want, np.asarray(idx), cot.astype(np.float64))
+    assert grad.dtype == jnp.bfloat16
+    np.testing.assert_allclose(np.asarray(grad, np.float64), want, rtol=2.0**-8)
+    plain = jax.jit(jax.grad(lambda t: jnp.sum(t[idx].astype(jnp.float32) * cot)))(table)
+    assert abs(float(plain[0, 0]) - want[0, 0]) > 0.05 * want[0, 0]  # what it avoids
+    t32 = table.astype(jnp.float32)
+    assert "custom_vjp" not in str(jax.make_jaxpr(gather_f32)(t32, idx))
+
+
 @pytest.mark.parametrize("name", ["rgbd_sg_attn", "gcn"])
 def test_gnn_bfloat16_tracks_float32(name):
     # ModelConfig.gnn_dtype: the same (float32) parameters; the GNN's k / q / v tables and their
@@ -1143,5 +1166,10 @@ def test_gnn_bfloat16_tracks_float32(name):
     assert "bf16" not in text32
     assert re.search(r"bf16\[[0-9,]+\] = gather", text16)  # bfloat16 tables are gathered
     assert not re.search(r"bf16\[[0-9,]+\] = scatter-add", text16)  # sums are float32
+    # ... and so are the gathers' gradients (lookup.gather_f32): XLA:GPU's bfloat16 scatter-adds
+    # made a bfloat16 PPO update slower than a float32 one on an H100 (2026-12-05).
+    grad16 = str(jax.make_jaxpr(jax.grad(lambda p: jnp.sum(m16.apply(p, obs)[0])))(variables))
+    assert re.search(r"f32\[[0-9,]+\] = scatter-add", grad16)
+    assert not re.search(r"bf16\[[0-9,]+\] = scatter-add", grad16)
     with pytest.raises(ConfigError, match="gnn_dtype"):
         dataclasses.replace(cfg, gnn_dtype="float16")

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hron_jax import graph_types as gt
-from hron_jax.models.lookup import take_rows
+from hron_jax.models.lookup import gather_f32, take_rows
 
 
 # PyG's Linear/HeteroLinear default: kaiming_uniform(a=sqrt(5)) == U(+-1/sqrt(fan_in)), i.e.
@@ -56,11 +56,6 @@ def _bias_uniform(fan_in: int):
 def _f32(a):
     """float32 view of a (the identity on float32, so the default dtype's numbers are unchanged)."""
     return a.astype(jnp.float32)
-
-
-def _dot_f32(a, b):
-    """sum(a * b, -1) in float32: with bfloat16 tables the products and the sum are float32."""
-    return jnp.sum(_f32(a) * _f32(b), axis=-1)
 
 
 def on_rows(f, x):
@@ -202,15 +197,15 @@ def _relation_edges(live, relation, sender_type, num_relations: int, rel_src):
 def _attend(p_rel, q_e, k_e, v_e, rel, live, dst, rows: int, softmax: str):
     """The attention of every edge and the messages summed at the receivers.
 
-    q_e / k_e / v_e [E, H, D] (the receiver's query, the sender's relation-transformed key and
-    value), rel i32[E] in [0, R), live bool[E], dst i32[E] the receiver's row of `rows`. Returns
-    (gelu(aggregate) f32[rows, H D], alpha f32[E, H]).
+    q_e / k_e / v_e f32[E, H, D] (the receiver's query, the sender's relation-transformed key and
+    value: `gather_f32` rows, also of bfloat16 tables), rel i32[E] in [0, R), live bool[E], dst
+    i32[E] the receiver's row of `rows`. Returns (gelu(aggregate) f32[rows, H D], alpha f32[E, H]).
     """
     h, d = q_e.shape[-2:]
-    score = _dot_f32(q_e, k_e) * take_rows(p_rel, rel) / math.sqrt(d)
+    score = jnp.sum(q_e * k_e, -1) * take_rows(p_rel, rel) / math.sqrt(d)
     alpha = masked_segment_softmax(score, live, *_softmax_groups(dst, rel, rows, p_rel.shape[0], softmax))
     # where() rather than a product with alpha = 0: a non-finite value on a dead row must not leak.
-    msg = jnp.where(live[:, None, None], _f32(v_e) * alpha[..., None], 0.0)
+    msg = jnp.where(live[:, None, None], v_e * alpha[..., None], 0.0)
     agg = jax.ops.segment_sum(msg, dst, rows).reshape(rows, h * d)
     return jax.nn.gelu(agg, approximate=False), alpha
 
@@ -249,9 +244,8 @@ def _hgt_single(
     v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
     senders, receivers = spread_dead(senders, live, n), spread_dead(receivers, live, n)
     row = senders * r + rel
-    a, alpha = _attend(
-        params["p_rel"], q[receivers], k_all[row], v_all[row], rel, live, receivers, n, softmax
-    )
+    q_e, k_e, v_e = gather_f32(q, receivers), gather_f32(k_all, row), gather_f32(v_all, row)
+    a, alpha = _attend(params["p_rel"], q_e, k_e, v_e, rel, live, receivers, n, softmax)
     out = typed(a.astype(x.dtype), params["out_kernel"], params["out_bias"])
     if f_in == f:
         gate = jax.nn.sigmoid(onehot.astype(jnp.float32) @ params["skip"])[:, None]
@@ -366,9 +360,8 @@ def _hgt_tables(
         jnp.asarray(kv_off, senders.dtype)[st][:, None] + (jnp.arange(h) * n_src + src[:, None]) * s + slot
     )
     v_row = k_row + h * n_src * s
-    a, alpha = _attend(
-        params["p_rel"], q[dst], table[k_row], table[v_row], rel, live, dst, int(rows.sum()), softmax
-    )
+    q_e, k_e, v_e = gather_f32(q, dst), gather_f32(table, k_row), gather_f32(table, v_row)
+    a, alpha = _attend(params["p_rel"], q_e, k_e, v_e, rel, live, dst, int(rows.sum()), softmax)
     a = a.astype(xs[0].dtype)
 
     outs = []
@@ -572,7 +565,7 @@ def _gcn(hx, bias, node_mask, senders, receivers, edge_mask):
     # deg is 0 only for dead nodes; guard the rsqrt so neither value nor gradient is inf.
     dis = jnp.where(deg > 0, jax.lax.rsqrt(jnp.where(deg > 0, deg, 1.0)), 0.0)
     norm = dis[senders] * w * dis[receivers]
-    msg = jnp.where(live[:, None], norm[:, None] * _f32(hx[senders]), 0.0)  # no 0 * inf leaks
+    msg = jnp.where(live[:, None], norm[:, None] * gather_f32(hx, senders), 0.0)  # no 0 * inf leaks
     out = jax.ops.segment_sum(msg, receivers, n)
     out = out + (dis * dis * loop)[:, None] * _f32(hx)
     out = out + bias

@@ -16,6 +16,16 @@ VM, `bench model`, 311 -> 403 ms), so CPU numbers are bitwise those of a plain g
 Used wherever a parameter table is indexed per edge or node: the HGT's relation priors (gnn.py),
 the category / node-type / map-class embeddings (encoders.py). Integer indices get no gradient (as
 with a gather).
+
+    gather_f32(table, idx) == table[idx] in float32   table [R, ...] float32 or bfloat16
+
+The per-edge gathers of the GNN's node tables (gnn.py) with ModelConfig.gnn_dtype='bfloat16': the
+rows are read in bfloat16, but the gradient is summed in float32 and rounded to bfloat16 once per
+row. Autodiff of a bfloat16 gather scatter-adds bfloat16 cotangents, and XLA:GPU's bfloat16
+scatter-adds are slow: on one H100 (2026-12-05, `bench profile`, exploratory main model, 4096
+envs x 16 steps, 32x32) the HGT layers' gather gradients took 1,203 ms per PPO update in bfloat16
+(270-560 GB/s) against 205 ms in float32 (3.8-5.3 TB/s), so a bfloat16 update was slower than a
+float32 one (3,403 vs 3,347 ms). A float32 table takes the plain gather (bitwise unchanged).
 """
 
 from __future__ import annotations
@@ -58,6 +68,31 @@ def _take_rows_bwd(num_rows: int, idx, g):
 
 
 _take_rows.defvjp(_take_rows_fwd, _take_rows_bwd)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _gather_f32(table, idx, num_rows: int):
+    return table[idx].astype(jnp.float32)
+
+
+def _gather_f32_fwd(table, idx, num_rows: int):
+    # The table's dtype rides along as a zero-size array (residuals are arrays).
+    return table[idx].astype(jnp.float32), (idx, jnp.zeros((0,), table.dtype))
+
+
+def _gather_f32_bwd(num_rows: int, res, g):
+    idx, like = res
+    return _scatter_grad(num_rows, idx, g).astype(like.dtype), None
+
+
+_gather_f32.defvjp(_gather_f32_fwd, _gather_f32_bwd)
+
+
+def gather_f32(table: jax.Array, idx: jax.Array) -> jax.Array:
+    """table[idx] along the first axis, in float32, its gradient summed in float32 (see above)."""
+    if table.dtype == jnp.float32:
+        return table[idx]
+    return _gather_f32(table, jnp.asarray(idx), table.shape[0])
 
 
 def take_rows(table: jax.Array, idx: jax.Array) -> jax.Array:
