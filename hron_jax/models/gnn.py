@@ -244,7 +244,7 @@ def _hgt_single(
     v_all = jnp.einsum("nhd,rhde->nrhe", v, params["v_rel"]).reshape(n * r, h, d)
     senders, receivers = spread_dead(senders, live, n), spread_dead(receivers, live, n)
     row = senders * r + rel
-    q_e, k_e, v_e = gather_f32(q, receivers), gather_f32(k_all, row), gather_f32(v_all, row)
+    (q_e,), (k_e,), (v_e,) = gather_f32(q, receivers), gather_f32(k_all, row), gather_f32(v_all, row)
     a, alpha = _attend(params["p_rel"], q_e, k_e, v_e, rel, live, receivers, n, softmax)
     out = typed(a.astype(x.dtype), params["out_kernel"], params["out_bias"])
     if f_in == f:
@@ -360,7 +360,7 @@ def _hgt_tables(
         jnp.asarray(kv_off, senders.dtype)[st][:, None] + (jnp.arange(h) * n_src + src[:, None]) * s + slot
     )
     v_row = k_row + h * n_src * s
-    q_e, k_e, v_e = gather_f32(q, dst), gather_f32(table, k_row), gather_f32(table, v_row)
+    (q_e,), (k_e, v_e) = gather_f32(q, dst), gather_f32(table, k_row, v_row)
     a, alpha = _attend(params["p_rel"], q_e, k_e, v_e, rel, live, dst, int(rows.sum()), softmax)
     a = a.astype(xs[0].dtype)
 
@@ -565,7 +565,7 @@ def _gcn(hx, bias, node_mask, senders, receivers, edge_mask):
     # deg is 0 only for dead nodes; guard the rsqrt so neither value nor gradient is inf.
     dis = jnp.where(deg > 0, jax.lax.rsqrt(jnp.where(deg > 0, deg, 1.0)), 0.0)
     norm = dis[senders] * w * dis[receivers]
-    msg = jnp.where(live[:, None], norm[:, None] * gather_f32(hx, senders), 0.0)  # no 0 * inf leaks
+    msg = jnp.where(live[:, None], norm[:, None] * gather_f32(hx, senders)[0], 0.0)  # no 0 * inf leaks
     out = jax.ops.segment_sum(msg, receivers, n)
     out = out + (dis * dis * loop)[:, None] * _f32(hx)
     out = out + bias

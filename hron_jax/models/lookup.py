@@ -17,7 +17,8 @@ Used wherever a parameter table is indexed per edge or node: the HGT's relation 
 the category / node-type / map-class embeddings (encoders.py). Integer indices get no gradient (as
 with a gather).
 
-    gather_f32(table, idx) == table[idx] in float32   table [R, ...] float32 or bfloat16
+    gather_f32(table, *idxs) == (table[idx] in float32 for idx in idxs)
+                                              table [R, ...] float32 or bfloat16
 
 The per-edge gathers of the GNN's node tables (gnn.py) with ModelConfig.gnn_dtype='bfloat16': the
 rows are read in bfloat16, but the gradient is summed in float32 and rounded to bfloat16 once per
@@ -71,28 +72,34 @@ _take_rows.defvjp(_take_rows_fwd, _take_rows_bwd)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def _gather_f32(table, idx, num_rows: int):
-    return table[idx].astype(jnp.float32)
+def _gather_f32(table, idxs, num_rows: int):
+    return tuple(table[i].astype(jnp.float32) for i in idxs)
 
 
-def _gather_f32_fwd(table, idx, num_rows: int):
+def _gather_f32_fwd(table, idxs, num_rows: int):
     # The table's dtype rides along as a zero-size array (residuals are arrays).
-    return table[idx].astype(jnp.float32), (idx, jnp.zeros((0,), table.dtype))
+    return _gather_f32(table, idxs, num_rows), (idxs, jnp.zeros((0,), table.dtype))
 
 
-def _gather_f32_bwd(num_rows: int, res, g):
-    idx, like = res
-    return _scatter_grad(num_rows, idx, g).astype(like.dtype), None
+def _gather_f32_bwd(num_rows: int, res, gs):
+    # All gathers' cotangents into one float32 table, rounded once: a table per gather, each
+    # rounded and then summed, would materialise them all (in XLA:GPU's program for an H100).
+    idxs, like = res
+    acc = jnp.zeros((num_rows,) + gs[0].shape[idxs[0].ndim :], jnp.float32)
+    for i, g in zip(idxs, gs):
+        acc = acc.at[i].add(g)
+    return acc.astype(like.dtype), None
 
 
 _gather_f32.defvjp(_gather_f32_fwd, _gather_f32_bwd)
 
 
-def gather_f32(table: jax.Array, idx: jax.Array) -> jax.Array:
-    """table[idx] along the first axis, in float32, its gradient summed in float32 (see above)."""
+def gather_f32(table: jax.Array, *idxs: jax.Array) -> tuple[jax.Array, ...]:
+    """(table[idx] for idx in idxs) along the first axis, in float32, the gradient of all of them
+    summed in one float32 table (see above)."""
     if table.dtype == jnp.float32:
-        return table[idx]
-    return _gather_f32(table, jnp.asarray(idx), table.shape[0])
+        return tuple(table[i] for i in idxs)
+    return _gather_f32(table, tuple(jnp.asarray(i) for i in idxs), table.shape[0])
 
 
 def take_rows(table: jax.Array, idx: jax.Array) -> jax.Array:
