@@ -35,7 +35,8 @@ class ModelConfig:
         gnn_dtype: compute dtype of the GNN layers (gnn.HGTConv / GCNConv): 'float32' (default, the
             paper's) or 'bfloat16', which halves the bytes of the per-node and per-edge tables
             (keys, values, queries: most of the HGT's memory traffic on a GPU). Parameters, the
-            attention scores and softmax, the message sums and the pooled output stay float32.
+            attention scores and softmax, the message sums, the gathers' gradients and the pooled
+            output stay float32.
     Image / map / goal branches
         conv_features, conv_kernels, conv_strides: the 3 conv layers (SAME padding, ReLU).
         conv: how they are computed (same parameters and outputs, encoders.PatchConv): 'patches'

@@ -401,8 +401,9 @@ class HGTConv(nn.Module):
         batch of graphs with a leading axis on every input (x f32[B, N, F_in], ..., senders
         i32[B, E]; the fast path with node_type_counts, see Cost).
     dtype: compute dtype ('float32' or 'bfloat16', ModelConfig.gnn_dtype): x, the kernels and biases
-        and so the k / q / v tables and their per-edge gathers take it; scores, softmax and the
-        message sum are float32, parameters float32.
+        and so the k / q / v tables and their per-edge gathers take it; scores, softmax, the
+        message sum and the gathers' gradients (`lookup.gather_f32`) are float32, parameters
+        float32.
     Output: [(B,) N, features] in dtype. Sows the attention alpha f32[(B,) E, H] (0 on dead edges) as
     ('attention', 'alpha'), collected only when the caller makes 'attention' mutable (and never
     during init, so `init` returns parameters only, valid for single and batched apply). The shape

@@ -1,4 +1,4 @@
-"""Row lookups in small parameter tables whose gradient is a matmul, not a scatter-add.
+"""Row lookups whose gradients avoid XLA:GPU's slow scatter-adds.
 
     take_rows(table, idx) == table[idx]       table [R, ...], idx int [...] in [0, R)
                                               -> [*idx.shape, ...], bitwise the same forward
