@@ -4,8 +4,11 @@
     RUN_DIR/checkpoints/<U>/   orbax checkpoint of the full RunnerState after U updates
     RUN_DIR/corrupt_checkpoints/<U>/  a checkpoint found damaged on restore, moved aside (kept)
     RUN_DIR/metrics.jsonl      one row per update chunk (hron_jax.metrics_log)
+    RUN_DIR/processes.jsonl    one row per train.py process (start or resume): time, argv, the
+                               update it started from, machine (CPU, cores, load, JAX, devices)
 
     load_config(run_dir) -> TrainConfig          save_config(run_dir, config)
+    record_process(run_dir, update)               run_machines(run_dir) -> [machine dict]
     restore_runner(run_dir, abstract, log=...) -> (RunnerState [S, ...], update)
     restore_params(run_dir, config, env, network, step) -> (params [S, ...] numpy, update)
     read_metrics(run_dir) -> [row dict]           write_json(path, obj) (atomic)
@@ -69,6 +72,24 @@ def save_config(run_dir, config: TrainConfig) -> None:
         time=time.strftime('%Y-%m-%d %H:%M:%S'),
     )
     write_json(Path(run_dir) / 'config.json', dict(config=config.to_dict(), meta=meta))
+
+
+def record_process(run_dir, update: int) -> None:
+    """Append this process to RUN_DIR/processes.jsonl. config.json's meta is rewritten by every
+    resume, so this log is what says on which machines a run that was resumed elsewhere trained."""
+    from hron_jax.bench import machine
+
+    row = dict(time=time.strftime('%Y-%m-%d %H:%M:%S'), update=update, argv=sys.argv, machine=machine())
+    with open(Path(run_dir) / 'processes.jsonl', 'a') as f:
+        f.write(json.dumps(row) + '\n')
+
+
+def run_machines(run_dir) -> list[dict]:
+    """The machines of a run's processes, oldest first ([] for runs made before the log)."""
+    path = Path(run_dir) / 'processes.jsonl'
+    if not path.is_file():
+        return []
+    return [json.loads(line)['machine'] for line in path.read_text().splitlines() if line.strip()]
 
 
 def read_metrics(run_dir) -> list[dict]:

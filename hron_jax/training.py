@@ -48,7 +48,14 @@ from hron_jax.errors import NonFiniteError, UsageError
 from hron_jax.metrics_log import MetricsLog, curve_rows, plot_learning_curves, recent_success, summarize_chunk
 from hron_jax.multihost import is_main, sync
 from hron_jax.run_config import RESUMABLE, TrainConfig, build_env, build_network, config_diff, run_label
-from hron_jax.run_dir import checkpoint_manager, load_config, restore_runner, save_config, storable
+from hron_jax.run_dir import (
+    checkpoint_manager,
+    load_config,
+    record_process,
+    restore_runner,
+    save_config,
+    storable,
+)
 
 
 class Programs(NamedTuple):
@@ -338,6 +345,8 @@ class Trainer:
                 save_config(self.run_dir, config)
             self.runner = self.programs.initialize(seed_keys(config))
             step = 0
+        if self.is_main:
+            record_process(self.run_dir, step)
         self.update = int(jax.device_get(self.runner.update[0]))
         assert self.update == step
         self.manager = checkpoint_manager(self.run_dir, keep=config.keep_checkpoints)

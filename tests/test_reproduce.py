@@ -133,6 +133,17 @@ def test_report_from_runs(cli, tmp_path):
     side.write_text(json.dumps({**json.loads(side.read_text()), 'loadavg_training': [1.2, 3.4]}))
     assert cli.main(['--from-runs', '--runs', str(runs), '--out', str(tmp_path / 'again.md')]) == 0
     assert '1-min load average during the runs 1.2-3.4 (' in (tmp_path / 'again.md').read_text()
+    # Runs whose processes (train.py's processes.jsonl) ran on two machines name both, and the
+    # runs that named none are counted, not passed off as this machine.
+    for seed, cpu in ((0, 'CPU A'), (2, 'CPU B')):
+        proc = dict(update=0, machine=dict(cpu=cpu, cores=2, jax='0.10.2', devices=['cpu:0']))
+        log = runs / 'choice_rgbd_sg_attn_dist' / f's{seed}' / 'processes.jsonl'
+        log.write_text(json.dumps(proc) + '\n')
+    assert cli.main(['--from-runs', '--runs', str(runs), '--out', str(tmp_path / 'machines.md')]) == 0
+    assert (
+        "- machine: the runs' processes ran on CPU A, 2 logical cores; CPU B, 2 logical cores "
+        '(1 runs named no machine), JAX 0.10.2 on cpu:0; 1-min load average during the runs 1.2-3.4 ('
+    ) in (tmp_path / 'machines.md').read_text()
     # The table's cells without runs are listed as not run, with the paper profile's commands;
     # nothing is invented, and an estimate from runs under other settings says so. A table without
     # any run says so in one line and points to --plan (which lists its commands).
@@ -458,6 +469,7 @@ def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_chec
         (d / 'checkpoints' / '16').mkdir(parents=True)
         (d / 'checkpoints' / '16' / 'eval.json').write_text('{}')  # inside checkpoints: not archived
         (d / 'tb').mkdir()
+        (d / 'processes.jsonl').write_text(json.dumps(dict(update=0, machine=dict(cpu='CPU A'))) + '\n')
     (runs / '_reference').mkdir()
     fake_eval(runs / '_reference' / 'random_house', 0.1, 0.05)
     assert cli.main(['--from-runs', '--runs', str(runs), '--out', str(out)]) == 0
@@ -469,7 +481,7 @@ def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_chec
             *[
                 f'choice_rgbd_sg_attn_dist/s{s}/{f}'
                 for s in (0, 1)
-                for f in ARCHIVED[:3] + ('eval_trained/eval.json',)
+                for f in ARCHIVED[:3] + ('processes.jsonl', 'eval_trained/eval.json')
             ],
         ]
     )

@@ -24,12 +24,13 @@ import numpy as np
 import pytest
 
 from hron_jax import evaluation
+from hron_jax.bench import machine
 from hron_jax.cli import config_from_args, tune_malloc
 from hron_jax.cli import main as train_main
 from hron_jax.errors import NonFiniteError
 from hron_jax.paths import REPO_ROOT
 from hron_jax.run_config import TrainConfig, make_config
-from hron_jax.run_dir import load_config, read_metrics, restore_runner
+from hron_jax.run_dir import load_config, read_metrics, restore_runner, run_machines
 from hron_jax.training import Trainer, programs
 
 ROOT = Path(REPO_ROOT)
@@ -190,6 +191,11 @@ def test_resume_after_interruption_is_exact(reference, tmp_path):
     assert len(csv_lines) == 5 and csv_lines[0].startswith('update,env_steps')
     assert (run_dir / 'learning_curve.png').stat().st_size > 0
     assert list((run_dir / 'tb').glob('events.out.tfevents.*'))
+    # Each process (the start and the resume) names its machine and where it took the run up.
+    procs = [json.loads(line) for line in (run_dir / 'processes.jsonl').read_text().splitlines()]
+    assert [p['update'] for p in procs] == [0, 4]
+    assert [m['cpu'] for m in run_machines(run_dir)] == [machine()['cpu']] * 2
+    assert procs[1]['machine']['cores'] == os.cpu_count() and procs[1]['machine']['jax'] == jax.__version__
 
 
 def test_resume_config_mismatch(reference, tmp_path, capsys):

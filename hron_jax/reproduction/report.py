@@ -361,23 +361,33 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
     ]
     found = {c: collect_cell(runs, c) for c in GRID}
     paper_nav = profile_config('paper', main_cell('directed'))
-    run_machine = next((f['machine'] for f in found.values() if f and f['machine']), None)
-    m = run_machine or machine()
+    run_machines = [x for f in found.values() if f for x in f['machines']]
+    unrecorded = sum(f['unrecorded'] for f in found.values() if f)
+    m = run_machines[0] if run_machines else machine()
     loads = [x for f in found.values() if f for x in f['loads']]
     if loads:
         load_txt = f'during the runs {min(loads):.1f}-{max(loads):.1f}'
-    elif run_machine:
-        load_txt = f'during the runs {m.get("loadavg", "?")}'
+    elif run_machines:
+        starts = [x['loadavg'][0] for x in run_machines if x.get('loadavg')]
+        load_txt = f'at the runs\' starts {min(starts):.1f}-{max(starts):.1f}' if starts else 'not recorded'
     else:
-        # Runs made by train.py itself carry no repro.json: only this process's machine is known.
+        # Runs made by train.py before processes.jsonl name no machine: only this process's is known.
         load_txt = (
             f'when this report was written {m.get("loadavg", "?")}; the runs recorded neither '
             'machine nor load, so both are this process\'s'
         )
+    kinds = list(dict.fromkeys(f'{x.get("cpu")}, {x.get("cores")} logical cores' for x in run_machines))
+    if len(kinds) > 1 or (run_machines and unrecorded):
+        # Runs resumed or made on other machines: name them all, as XLA:CPU rounds per machine.
+        where = f'the runs\' processes ran on {"; ".join(kinds)}' + (
+            f' ({unrecorded} runs named no machine)' if unrecorded else ''
+        )
+    else:
+        where = kinds[0] if kinds else f'{m.get("cpu")}, {m.get("cores")} logical cores'
     lines += [
         '## Machine and protocol',
         '',
-        f'- machine: {m.get("cpu")}, {m.get("cores")} logical cores, JAX {m.get("jax", "?")} on '
+        f'- machine: {where}, JAX {m.get("jax", "?")} on '
         f'{", ".join(m.get("devices", [])) or "?"}; 1-min load average {load_txt} '
         '(the cores are shared with other jobs: at load ~7 the same program ran '
         '2.5x slower than at ~1, so wall times are upper bounds).',

@@ -90,7 +90,15 @@ def eval_json(run_dir: Path) -> Path | None:
 # The files of a run that the report reads (no checkpoints, TensorBoard or figures): the report's
 # runs keep them in git beside it, so a fresh checkout (no runs/) regenerates the report and adds
 # seeds to it. Units are RUNS/<cell>/<run> (and _reference/<policy_house>, _probe/<cell>).
-ARCHIVED = ('config.json', 'metrics.jsonl', 'repro.json', 'attention_summary.json', 'eval.json', 'eval.md')
+ARCHIVED = (
+    'config.json',
+    'metrics.jsonl',
+    'repro.json',
+    'attention_summary.json',
+    'eval.json',
+    'eval.md',
+    'processes.jsonl',
+)
 NOT_ARCHIVED_DIRS = ('checkpoints', 'corrupt_checkpoints', 'tb')
 
 
@@ -197,6 +205,7 @@ def steps_per_second(run_dirs: list[Path]) -> float | None:
 def collect_cell(runs: Path, cell: Cell) -> dict | None:
     """Aggregate a cell's evaluated runs: per-seed SR / SPL means, steps, wall times, configs."""
     from hron_jax.run_config import TrainConfig
+    from hron_jax.run_dir import run_machines
 
     seeds, steps, train_wall, proc_wall, configs, episodes, machines, loads = (
         [],
@@ -208,6 +217,7 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
         [],
         [],
     )
+    unrecorded = 0  # runs that name no machine (made before train.py kept processes.jsonl)
     for d in cell_runs(runs, cell):
         ev = eval_json(d)
         if ev is None:
@@ -227,12 +237,14 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
             steps.append(rows[-1]['env_steps'])
             train_wall += [rows[-1]['wall_time'] / n] * n
         side = d / 'repro.json'
-        if side.is_file():
-            r = json.loads(side.read_text())
+        r = json.loads(side.read_text()) if side.is_file() else {}
+        if r:
             proc_wall += [(r.get('train_wall_s', np.nan) + r.get('eval_wall_s', 0.0)) / n] * n
-            if r.get('machine'):
-                machines.append(r['machine'])
             loads += r.get('loadavg_training') or (r.get('machine') or {}).get('loadavg', [])[:1]
+        # The runner's record of the machine, else train.py's own (one per process).
+        found = [r['machine']] if r.get('machine') else run_machines(d)
+        machines += found
+        unrecorded += not found
         configs.append((run_seeds, cfg))
     if not seeds:
         return None
@@ -257,6 +269,8 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
         'configs': described,
         'settings': [settings(cfg) for _, cfg in configs],
         'machine': machines[0] if machines else None,
+        'machines': machines,
+        'unrecorded': unrecorded,
         'loads': loads,
     }
 
