@@ -4,8 +4,8 @@
     RUN_DIR/checkpoints/<U>/   orbax checkpoint of the full RunnerState after U updates
     RUN_DIR/corrupt_checkpoints/<U>/  a checkpoint found damaged on restore, moved aside (kept)
     RUN_DIR/metrics.jsonl      one row per update chunk (hron_jax.metrics_log)
-    RUN_DIR/processes.jsonl    one row per train.py process (start or resume): time, argv, the
-                               update it started from, machine (CPU, cores, load, JAX, devices)
+    RUN_DIR/processes.jsonl    one row per train.py start or resume (multi-host: process 0's): time,
+                               argv, the update it started from, machine (CPU, cores, load, JAX, devices)
 
     load_config(run_dir) -> TrainConfig          save_config(run_dir, config)
     record_process(run_dir, update)               run_machines(run_dir) -> [machine dict]
