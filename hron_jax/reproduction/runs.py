@@ -268,7 +268,6 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
         'steps_per_s': steps_per_second(cell_runs(runs, cell)),
         'configs': described,
         'settings': [settings(cfg) for _, cfg in configs],
-        'machine': machines[0] if machines else None,
         'machines': machines,
         'unrecorded': unrecorded,
         'loads': loads,
