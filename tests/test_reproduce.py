@@ -508,6 +508,19 @@ def test_the_report_s_runs_are_archived_beside_it_and_restored_into_a_fresh_chec
     monkeypatch.setattr(runner, 'profile_steps', lambda profile, task: 4096)
     with pytest.raises(SystemExit, match='no checkpoints to resume'):
         runner.run_cell_seed(cell, 1, fresh, 'cpu', 50)
+    # An eval archived after the run was restored reaches the restored copy, so the report's
+    # save_runs keeps it in the archive; a run retrained in place (other metrics) takes none.
+    late = Path('eval_200ep') / 'eval.json'
+    for s in (0, 1):
+        (archive / cell.name / f's{s}' / late).parent.mkdir()
+        (archive / cell.name / f's{s}' / late).write_text('{"late": 1}')
+    retrained = fresh / cell.name / 's0' / 'metrics.jsonl'
+    retrained.write_text(retrained.read_text() * 2)
+    assert cli.main(['--from-runs', '--runs', str(fresh), '--out', str(out)]) == 0
+    assert (fresh / cell.name / 's1' / late).read_text() == '{"late": 1}'
+    assert (archive / cell.name / 's1' / late).read_text() == '{"late": 1}'
+    assert not (fresh / cell.name / 's0' / late).exists()
+    assert not (archive / cell.name / 's0' / late).exists()  # the retrained s0 replaced it
 
 
 def test_probe_runs_the_paper_profile(cli, tmp_path, monkeypatch):

@@ -151,7 +151,8 @@ def main(argv=None) -> int:
         restored = restore_runs(archive_of(out), runs)
         if restored:
             print(
-                f'restored {len(restored)} archived runs into {runs} (from {repo_relative(archive_of(out))})'
+                f'restored {len(restored)} archived runs (or their files a copy lacked) into {runs} '
+                f'(from {repo_relative(archive_of(out))})'
             )
     if a.probe:
         by_name = {c.name: c for c in GRID}

@@ -8,8 +8,9 @@ root, where train.py and eval.py run (repo_relative: a path relative to it, for 
 
 The archive: the ARCHIVED files of every run, in git beside the report (archive_of(out), in the
 report's own folder report_dir(out), which also holds its figures); restore_runs copies the
-archived runs RUNS lacks into it, save_runs copies RUNS's into the archive. default_runs(out): the
-run dirs a report reads unless told otherwise (each report its own, so no two mix their cells).
+archived runs RUNS lacks into it (and the archived files a restored run lacks), save_runs copies
+RUNS's into the archive. default_runs(out): the run dirs a report reads unless told otherwise (each
+report its own, so no two mix their cells).
 
 Reading: cell_runs(runs, cell) -> its run dirs; num_seeds_of, steps_per_second (measured env
 steps/s); collect_cell(runs, cell) -> a dict of its evaluated runs' per-seed SR / SPL (mean_std:
@@ -140,15 +141,34 @@ def _units(root: Path) -> list[Path]:
 
 
 def restore_runs(archive: Path, runs: Path) -> list[str]:
-    """Copy every archived run that RUNS does not have into RUNS; returns their names. A restored
-    run has no checkpoints: it is finished and evaluated, so the runner skips it."""
+    """Copy every archived run that RUNS does not have into RUNS, and into each run RUNS has from
+    the archive (the same run: config.json and metrics.jsonl equal) the archived files it lacks, such
+    as an eval archived after the run was restored (save_runs would otherwise write the copy without
+    it back over the archive); returns the names of the runs copied or completed. A restored run has
+    no checkpoints: it is finished and evaluated, so the runner skips it."""
     restored = []
     for unit in _units(archive):
         rel = unit.relative_to(archive)
-        if not (runs / rel).exists():
-            shutil.copytree(unit, runs / rel)
+        here = runs / rel
+        if not here.exists():
+            shutil.copytree(unit, here)
             restored.append(rel.as_posix())
+        elif _same_run(unit, here):
+            missing = [here / f.relative_to(unit) for f in unit.rglob('*') if f.is_file()]
+            missing = [f for f in missing if not f.exists()]
+            for f in missing:
+                f.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(unit / f.relative_to(here), f)
+            if missing:
+                restored.append(rel.as_posix())
     return restored
+
+
+def _same_run(a: Path, b: Path) -> bool:
+    """Whether run dirs a and b hold the same training: config.json and metrics.jsonl equal (a run
+    retrained in its place differs in both, and must not take the old run's evals)."""
+    files = [(a / n, b / n) for n in ('config.json', 'metrics.jsonl')]
+    return all(x.is_file() and y.is_file() and x.read_bytes() == y.read_bytes() for x, y in files)
 
 
 def save_runs(runs: Path, archive: Path) -> None:
