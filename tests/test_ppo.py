@@ -368,7 +368,9 @@ def test_rgbd_sg_attn_learns_choice_with_distractors():
     choice): seed 0 on that machine reached 1.00 at update 30, fell to 0.72 by update 70 (one
     update of approx KL 0.23) and ended at 0.74, choosing right never when the goal (circle above)
     is on the right and always rightly otherwise; one of seeds 100-107 (trained vmapped) never left
-    ~0.72 in 100 updates. 0.05 keeps both choices explored; it still allows an SR of 1.
+    ~0.72 in 100 updates (the freeze docs/reproduction.md's Table I note 3 saw at lr 3e-4, which
+    made the task defaults' lr 1e-4: too slow for this test). 0.05 keeps both choices explored; it
+    still allows an SR of 1.
     """
     from hron_jax.models import ModelConfig, make_model
 
