@@ -166,7 +166,8 @@ def restore_runs(archive: Path, runs: Path) -> list[str]:
 
 def _same_run(a: Path, b: Path) -> bool:
     """Whether run dirs a and b hold the same training: config.json and metrics.jsonl equal (a run
-    retrained in its place differs in both, and must not take the old run's evals)."""
+    retrained in its place logs other metrics, wall times at least, and must not take the old
+    run's evals)."""
     files = [(a / n, b / n) for n in ('config.json', 'metrics.jsonl')]
     return all(x.is_file() and y.is_file() and x.read_bytes() == y.read_bytes() for x, y in files)
 
