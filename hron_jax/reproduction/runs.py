@@ -154,11 +154,11 @@ def restore_runs(archive: Path, runs: Path) -> list[str]:
             shutil.copytree(unit, here)
             restored.append(rel.as_posix())
         elif _same_run(unit, here):
-            missing = [here / f.relative_to(unit) for f in unit.rglob('*') if f.is_file()]
-            missing = [f for f in missing if not f.exists()]
+            missing = [f.relative_to(unit) for f in unit.rglob('*') if f.is_file()]
+            missing = [f for f in missing if not (here / f).exists()]
             for f in missing:
-                f.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy2(unit / f.relative_to(here), f)
+                (here / f).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(unit / f, here / f)
             if missing:
                 restored.append(rel.as_posix())
     return restored
