@@ -361,16 +361,16 @@ SG_ATTN_SIZES = dict(
 def test_rgbd_sg_attn_learns_choice_with_distractors():
     """Issue target: SR >= 0.95 on the choice task with up to 75 distractors, rgbd_sg_attn, CPU.
 
-    Measured on a 2-core Xeon VM, seeds 0-7: ~1 min compile + ~40 s for 100 updates (12,800 env
-    steps); SR first holds >= 0.95 over 5 updates after 34-78 updates and ends at 1.00 for every
-    seed. At ent_coef 0.01 the policy can turn deterministic on one of the 4 (goal side, relation)
-    cases and stay there at SR ~0.73 (its entropy near 0, so no gradient reaches the other
-    choice): seed 0 on that machine reached 1.00 at update 30, fell to 0.72 by update 70 (one
-    update of approx KL 0.23) and ended at 0.74, choosing right never when the goal (circle above)
-    is on the right and always rightly otherwise; one of seeds 100-107 (trained vmapped) never left
-    ~0.72 in 100 updates (the freeze docs/reproduction.md's Table I note 3 saw at lr 3e-4, which
-    made the task defaults' lr 1e-4: too slow for this test). 0.05 keeps both choices explored; it
-    still allows an SR of 1.
+    Measured on a 2-core Xeon VM, seeds 0-7: 100 updates (12,800 env steps) took 107-151 s per seed
+    with two such runs sharing the cores, after ~1 min of compile; SR first holds >= 0.95 over 5
+    updates after 34-78 updates and ends at 1.00 for every seed. At ent_coef 0.01 the policy can
+    turn deterministic on one of the 4 (goal side, relation) cases and stay there at SR ~0.73 (its
+    entropy near 0, so no gradient reaches the other choice): seed 0 on that machine reached 1.00 at
+    update 30, fell to 0.72 by update 70 (one update of approx KL 0.23) and ended at 0.74, choosing
+    right never when the goal (circle above) is on the right and always rightly otherwise; one of
+    seeds 100-107 (trained vmapped) never left ~0.72 in 100 updates (the freeze
+    docs/reproduction.md's Table I note 3 saw at lr 3e-4, which made the task defaults' lr 1e-4: too
+    slow for this test). 0.05 keeps both choices explored; it still allows an SR of 1.
     """
     from hron_jax.models import ModelConfig, make_model
 
