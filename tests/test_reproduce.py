@@ -342,9 +342,18 @@ def test_generalisation_section_reads_held_out_evals(tmp_path):
         d = runs / 'exploratory_rgbd_sg_attn' / f's{seed}'
         fake_run(d, seed, sr, sr / 2, distractors=False, task='exploratory')
         fake_eval(held_out_dir(d, HELD_OUT[0]), held, held / 2)
-    row = next(l for l in generalisation_section(runs) if l.startswith('| RGB-D + SG + TD ATTN |'))
+    # A baseline shows up only where its runs were evaluated in a held-out house.
+    fake_run(runs / 'exploratory_gcn' / 's0', 0, 0.3, 0.1, distractors=False, task='exploratory')
+    fake_run(runs / 'exploratory_rgbd' / 's0', 0, 0.2, 0.1, distractors=False, task='exploratory')
+    fake_eval(held_out_dir(runs / 'exploratory_rgbd' / 's0', HELD_OUT[2]), 0.1, 0.02)
+    lines = generalisation_section(runs)
+    row = next(l for l in lines if l.startswith('| RGB-D + SG + TD ATTN |'))
     # Training house: mean SR of the seeds 0.5, SPL 0.25; house_1: 0.1 / 0.05; others not run.
     assert row.split(' | ')[2:5] == ['0.500 / 0.250 (2 x 50)', '0.100 / 0.050 (2 x 50)', 'not yet run']
+    baseline = next(l for l in lines if l.startswith('| RGB-D only |'))
+    cols = baseline.rstrip(' |').split(' | ')[2:]
+    assert cols == ['0.200 / 0.100 (1 x 50)', 'not yet run', 'not yet run', '0.100 / 0.020 (1 x 50)']
+    assert not any(l.startswith('| Kipf et al.') for l in lines)
     # The chance level of each house comes from the random-policy evaluations under _reference.
     (runs / '_reference').mkdir()
     fake_eval(reference_dir(runs, 'random', TRAIN_HOUSE), 0.05, 0.01)
