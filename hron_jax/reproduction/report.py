@@ -194,16 +194,17 @@ def generalisation_section(runs: Path) -> list[str]:
     """SR / SPL of exploratory runs in their training house and in HELD_OUT: the main model's
     (GENERALISATION_MODELS, which the runner evaluates there) and any other cell's whose runs have
     held-out evaluations (e.g. made by hand with `eval.py RUN --scene HOUSE`)."""
+    held_out_json = [lambda d, s=s: held_out_dir(d, s) / 'eval.json' for s in HELD_OUT]
     rows = []
     for c in GRID:
         if c.task != 'exploratory':
             continue
         dirs = [d for d in cell_runs(runs, c) if eval_json(d) is not None]
-        held = any((held_out_dir(d, s) / 'eval.json').is_file() for d in dirs for s in HELD_OUT)
+        held = any(path_of(d).is_file() for path_of in held_out_json for d in dirs)
         if not dirs or (c.model not in GENERALISATION_MODELS and not held):
             continue
         cols = []
-        for path_of in [eval_json] + [lambda d, s=s: held_out_dir(d, s) / 'eval.json' for s in HELD_OUT]:
+        for path_of in [eval_json] + held_out_json:
             per_seed = [
                 json.loads(p.read_text())['summary']
                 for p in map(path_of, dirs)
