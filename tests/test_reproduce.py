@@ -246,6 +246,38 @@ def test_config_text_says_paper_settings_only_when_they_ran(tmp_path):
     lines = table_comparison(2, done)
     assert lines[0].startswith('The rows of this table did not all run the same settings: ')
     assert "preset default (not the paper's settings) (RGB-D only)" in lines[0]
+    # GCN vs HGT is the model variant's choice, not a setting: rows of the same graph size and
+    # PPO compare as the same settings; a GCN of another size, or HGT's heads, do not.
+    t3 = dict(distractors=False, task='exploratory', model_option=['hidden=32'])
+    fake_run(runs / 'exploratory_gcn' / 's0', 0, 0.4, 0.2, model='gcn', **t3)
+    fake_run(runs / 'exploratory_rgbd_sg_attn' / 's0', 0, 0.8, 0.5, **t3)
+    fake_run(
+        runs / 'exploratory_rgbd_sg' / 's0',
+        0,
+        0.6,
+        0.3,
+        model='rgbd_sg',
+        **{**t3, 'model_option': ['hidden=32', 'heads=4']},
+    )
+    fake_run(
+        runs / 'exploratory_yang' / 's0', 0, 0.1, 0.0, model='yang', **{**t3, 'model_option': ['hidden=64']}
+    )
+    by_name = {c.name: c for c in GRID}
+
+    def compare(*names):
+        return table_comparison(3, [(by_name[n], collect_cell(runs, by_name[n])) for n in names])[0]
+
+    assert compare('exploratory_gcn', 'exploratory_rgbd_sg_attn').startswith(
+        'All rows of this table ran the same'
+    )
+    assert compare('exploratory_gcn', 'exploratory_yang') == (
+        'The rows of this table did not all run the same settings: graph network hidden 32, 3 layers '
+        '(Kipf et al. (GCN)) vs graph network hidden 64, 3 layers (Yang et al.).'
+    )
+    assert compare('exploratory_gcn', 'exploratory_rgbd_sg_attn', 'exploratory_rgbd_sg') == (
+        'The rows of this table did not all run the same settings: HGT 2 heads, joint softmax (RGB-D + SG + '
+        'TD ATTN) vs HGT 4 heads, joint softmax (RGB-D + SG).'
+    )
 
 
 def test_profiles(cli, capsys, tmp_path):

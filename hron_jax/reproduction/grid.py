@@ -5,7 +5,8 @@ profiles: PROFILES (train.py options per task), IN_PROCESS (those the in-process
 PROFILE_EPISODES, PROFILE_TEXT, and the paper's budget (PAPER_BUDGET, PAPER_STEPS).
 profile_config(profile, cell) -> the TrainConfig its train.py command builds (train.py's own
 parser); profile_steps -> its env steps per seed; train_argv -> that train.py command. What a run
-ran, from its TrainConfig: settings -> {aspect: words}, describe_config -> one line, paper_diff ->
+ran, from its TrainConfig: settings -> {aspect: words} (comparable_settings: as the rows of a
+table are compared), describe_config -> one line, paper_diff ->
 the fields where it is not the paper preset. notes(table, paper_budget) -> the notes under a table;
 ordering_disagreements / ordering_sentence compare the order of our rows with the paper's. Also
 EPISODES (eval episodes per seed), HELD_OUT / TRAIN_HOUSE (the generalisation table's houses) and
@@ -216,6 +217,19 @@ def settings(cfg) -> dict[str, str]:
     else:
         budget += ' (the paper states no budget for this task)'
     out['budget'] = budget
+    return out
+
+
+def comparable_settings(cfg) -> dict[str, str]:
+    """settings() as the rows of a table are compared: GCN or HGT is the model variant's choice, so
+    'graph' is the graph network's size whatever its kind, and HGT's attention ('attention') is
+    compared among the HGT rows alone."""
+    out = settings(cfg)
+    n = cfg.network
+    if n.use_graph:
+        out['graph'] = f'graph network hidden {n.hidden}, {n.gnn_layers} layers'
+        if n.gnn == 'hgt':
+            out['attention'] = f'HGT {n.heads} heads, {n.hgt_softmax} softmax'
     return out
 
 

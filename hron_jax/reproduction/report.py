@@ -302,7 +302,7 @@ def table_comparison(table: int, done: list) -> list[str]:
     / pre-map) and metric whether every pair of rows is ordered as in the paper."""
     lines = []
     varying = {}
-    for key in ('preset', 'camera', 'graph', 'ppo', 'budget'):
+    for key in ('preset', 'camera', 'graph', 'attention', 'ppo', 'budget'):
         vals: dict[str, list[str]] = {}
         for c, f in done:
             for st in f['settings']:

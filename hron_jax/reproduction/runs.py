@@ -14,8 +14,9 @@ report its own, so no two mix their cells).
 
 Reading: cell_runs(runs, cell) -> its run dirs; num_seeds_of, steps_per_second (measured env
 steps/s); collect_cell(runs, cell) -> a dict of its evaluated runs' per-seed SR / SPL (mean_std:
-mean, sample std, n), env steps, wall times, machines and configs in words (grid.settings), or
-None; seed0_dir -> the run holding seed 0. Writes nothing but the archive and restored runs.
+mean, sample std, n), env steps, wall times, machines and configs in words (grid.describe_config;
+per aspect as rows are compared, grid.comparable_settings), or None; seed0_dir -> the run holding
+seed 0. Writes nothing but the archive and restored runs.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from hron_jax.paths import REPO_ROOT
-from hron_jax.reproduction.grid import GRID, Cell, describe_config, settings
+from hron_jax.reproduction.grid import GRID, Cell, comparable_settings, describe_config
 
 # ------------------------------------------------------------------------------------------------
 # The layout of RUNS
@@ -288,7 +289,7 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
         'proc_wall_s': float(np.nanmean(proc_wall)) if proc_wall else None,
         'steps_per_s': steps_per_second(cell_runs(runs, cell)),
         'configs': described,
-        'settings': [settings(cfg) for _, cfg in configs],
+        'settings': [comparable_settings(cfg) for _, cfg in configs],
         'machines': machines,
         'unrecorded': unrecorded,
         'loads': loads,
