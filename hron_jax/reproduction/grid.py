@@ -6,11 +6,10 @@ PROFILE_EPISODES, PROFILE_TEXT, and the paper's budget (PAPER_BUDGET, PAPER_STEP
 profile_config(profile, cell) -> the TrainConfig its train.py command builds (train.py's own
 parser); profile_steps -> its env steps per seed; train_argv -> that train.py command. What a run
 ran, from its TrainConfig: settings -> {aspect: words} (comparable_settings: as the rows of a
-table are compared), describe_config -> one line, paper_diff ->
-the fields where it is not the paper preset. notes(table, paper_budget) -> the notes under a table;
-ordering_disagreements / ordering_sentence compare the order of our rows with the paper's. Also
-EPISODES (eval episodes per seed), HELD_OUT / TRAIN_HOUSE (the generalisation table's houses) and
-ATTENTION_CELLS.
+table are compared), describe_config -> one line, paper_diff -> the fields where it is not the
+paper preset. notes(table, paper_budget) -> the notes under a table; ordering_disagreements /
+ordering_sentence compare the order of our rows with the paper's. Also EPISODES (eval episodes per
+seed), HELD_OUT / TRAIN_HOUSE (the generalisation table's houses) and ATTENTION_CELLS.
 """
 
 from __future__ import annotations
