@@ -375,8 +375,10 @@ def test_generalisation_section_reads_held_out_evals(tmp_path):
         fake_run(d, seed, sr, sr / 2, distractors=False, task='exploratory')
         fake_eval(held_out_dir(d, HELD_OUT[0]), held, held / 2)
     # A baseline shows up only where its runs were evaluated in a held-out house.
-    fake_run(runs / 'exploratory_gcn' / 's0', 0, 0.3, 0.1, distractors=False, task='exploratory')
-    fake_run(runs / 'exploratory_rgbd' / 's0', 0, 0.2, 0.1, distractors=False, task='exploratory')
+    fake_run(runs / 'exploratory_gcn' / 's0', 0, 0.3, 0.1, distractors=False, task='exploratory', model='gcn')
+    fake_run(
+        runs / 'exploratory_rgbd' / 's0', 0, 0.2, 0.1, distractors=False, task='exploratory', model='rgbd'
+    )
     fake_eval(held_out_dir(runs / 'exploratory_rgbd' / 's0', HELD_OUT[2]), 0.1, 0.02)
     lines = generalisation_section(runs)
     row = next(l for l in lines if l.startswith('| RGB-D + SG + TD ATTN |'))
