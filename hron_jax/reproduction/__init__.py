@@ -64,9 +64,9 @@ profile's is not (an error says which).
 
 Generalisation (beyond the paper): each seed of an exploratory main-model cell is also evaluated
 on the generated houses it never saw (grid.HELD_OUT, `eval.py RUN --scene HOUSE`); the report lists
-any other exploratory cell whose runs have such evaluations too. Numbers are
-only ever read from run dirs: a cell without runs is listed as not run, with its commands and a
-cost estimate from measured env steps/s (its own runs, else a --probe run; report.estimate).
+any other exploratory cell whose runs have such evaluations too. Numbers are only ever read from
+run dirs: a cell without runs is listed as not run, with its commands and a cost estimate from
+measured env steps/s (its own runs, else a --probe run; report.estimate).
 
 Report statistics (report.py): SR / SPL = mean over all episodes of all seeds +- the sample std
 (ddof=1) over seeds of the per-seed means, with n (seeds) beside it; one seed has no spread (our
