@@ -1053,6 +1053,36 @@ def test_patch_conv_equals_xla_convolution(size, kernel, stride, impl):
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-4), g_ours, g_ref)
 
 
+@pytest.mark.parametrize(
+    "size,kernel,stride",
+    [((88, 88), 8, 4), ((11, 14), 4, 2), ((9, 9), 6, 3), ((7, 10), 5, 3), ((5, 6), 3, 1)],
+)
+def test_image_patches_are_the_same_padded_windows_as_a_loop(size, kernel, stride):
+    # Bitwise, on both of image_patches' paths (space to depth where the stride divides the kernel,
+    # strided slices otherwise), against windows cut one by one from a numpy copy padded as TF SAME.
+    from hron_jax.models.encoders import image_patches
+
+    x = np.asarray(jax.random.normal(jax.random.PRNGKey(0), (2,) + size + (3,)))
+    ho, wo = -(-size[0] // stride), -(-size[1] // stride)
+    ph = max((ho - 1) * stride + kernel - size[0], 0)
+    pw = max((wo - 1) * stride + kernel - size[1], 0)
+    xp = np.pad(x, ((0, 0), (ph // 2, ph - ph // 2), (pw // 2, pw - pw // 2), (0, 0)))
+    want = np.stack(
+        [
+            np.stack(
+                [
+                    xp[:, r * stride : r * stride + kernel, q * stride : q * stride + kernel]
+                    for q in range(wo)
+                ],
+                1,
+            )
+            for r in range(ho)
+        ],
+        1,
+    ).reshape(2, ho, wo, -1)
+    np.testing.assert_array_equal(image_patches(jnp.asarray(x), kernel, stride), want)
+
+
 @pytest.mark.parametrize("side", [32, 33])
 def test_conv_auto_is_patches_on_cpu_and_xla_convolution_on_gpu_above_32x32(side):
     # ModelConfig.conv='auto': the gradient program lowered for the CPU has no convolution op

@@ -60,15 +60,32 @@ def image_patches(x, k: int, s: int):
 
     f32[B, H, W, C] -> f32[B, ceil(H/s), ceil(W/s), k*k*C], features ordered (row, column, channel),
     so `patches @ kernel.reshape(k*k*C, F)` is the convolution with an HWIO kernel.
+
+    Where s > 1 divides k, the padded image is first cut into s x s blocks (space to depth) and a
+    patch is (k/s)^2 whole blocks: (k/s)^2 contiguous slices instead of k^2 strided ones. Same
+    patches, bitwise; what it changes is the gradient with respect to x, which sums one padded
+    copy of the image per slice: 4 instead of 64 for an 8 x 8 / stride 4 layer. Measured on
+    RGB-D + MM's CPU update, whose map branch needs that gradient (class embedding): its encoders'
+    op time -27 %, the update ~9 % faster (docs/benchmarks.md). The forward transposes the patch
+    tensor instead of concatenating slices, so a layer whose input takes no gradient (a camera
+    encoder's first) gains nothing.
     """
-    _, h, w, _ = x.shape
+    b, h, w, c = x.shape
     ho, wo = -(-h // s), -(-w // s)
     ph, pw = max((ho - 1) * s + k - h, 0), max((wo - 1) * s + k - w, 0)
     x = jnp.pad(x, ((0, 0), (ph // 2, ph - ph // 2), (pw // 2, pw - pw // 2), (0, 0)))
-    span_h, span_w = (ho - 1) * s + 1, (wo - 1) * s + 1
-    return jnp.concatenate(
-        [x[:, i : i + span_h : s, j : j + span_w : s, :] for i in range(k) for j in range(k)], axis=-1
-    )
+    if s == 1 or k % s:
+        span_h, span_w = (ho - 1) * s + 1, (wo - 1) * s + 1
+        return jnp.concatenate(
+            [x[:, i : i + span_h : s, j : j + span_w : s, :] for i in range(k) for j in range(k)],
+            axis=-1,
+        )
+    q = k // s
+    blocks = x[:, : (ho + q - 1) * s, : (wo + q - 1) * s].reshape(b, ho + q - 1, s, wo + q - 1, s, c)
+    # (q*q, B, ho, s, wo, s, C), block (i, j) first -> (B, ho, wo, i, row in block, j, col, C).
+    y = jnp.stack([blocks[:, i : i + ho, :, j : j + wo] for i in range(q) for j in range(q)])
+    y = y.reshape(q, q, b, ho, s, wo, s, c).transpose(2, 3, 5, 0, 4, 1, 6, 7)
+    return y.reshape(b, ho, wo, k * k * c)
 
 
 # Inputs up to this many pixels take patches on every platform under impl 'auto' (PatchConv).
