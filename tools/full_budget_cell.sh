@@ -11,12 +11,14 @@
 #   3. six evaluations (eval.py, sampled actions, eval seed 0): eval_trained (20 episodes, the
 #      paper's protocol), eval_200ep, eval_200ep_at_32768, eval_trained_house_{1,2,3} (20 each).
 # Every step is skipped when its output exists, so rerunning after an interruption continues.
-# Prints CELL_DONE <cell> s<seed> at the end. TRAIN_FLAGS go to the first train.py (e.g. --distractors).
+# Prints CELL_DONE <cell> s<seed> at the end. TRAIN_FLAGS go to the first train.py (--distractors;
+# --premap: the pre-mapped cells).
 set -euo pipefail
 task=$1 model=$2 seed=$3
 shift 3
 cell=${task}_${model}
-[[ " $* " == *" --distractors "* ]] && cell=${cell}_dist
+[[ " $* " == *" --distractors "* ]] && cell=${cell}_dist  # the grid's cell names (reproduction.grid)
+[[ " $* " == *" --premap "* ]] && cell=${cell}_pm
 run=runs/full/$cell/s$seed
 early=runs/full/ckpt32k_${cell}${seed}
 mkdir -p runs/full
