@@ -5,7 +5,8 @@
 #
 # Runs in the current directory's checkout (the full-budget tables freeze one commit for a whole
 # table: run it from a worktree of that commit), into runs/full/<task>_<model>/s<seed>:
-#   1. train.py to 32,768 env steps (or resume it), then copy the run as runs/full/ckpt32k_<cell><seed>
+#   1. train.py to 32,768 env steps (or resume it), then copy the run as
+#      runs/full/ckpt32k_<cell><seed>
 #      (train.py keeps 3 checkpoints, so the early one must be copied to be evaluated at the end);
 #   2. train.py --resume to 1,500,000 env steps (resumes from the last checkpoint after a stop);
 #   3. six evaluations (eval.py, sampled actions, eval seed 0): eval_trained (20 episodes, the
@@ -17,7 +18,8 @@ set -euo pipefail
 task=$1 model=$2 seed=$3
 shift 3
 cell=${task}_${model}
-[[ " $* " == *" --distractors "* ]] && cell=${cell}_dist  # the grid's cell names (reproduction.grid)
+# The grid's cell names (hron_jax.reproduction.grid):
+[[ " $* " == *" --distractors "* ]] && cell=${cell}_dist
 [[ " $* " == *" --premap "* ]] && cell=${cell}_pm
 run=runs/full/$cell/s$seed
 early=runs/full/ckpt32k_${cell}${seed}
@@ -32,7 +34,7 @@ if [[ ! -d $early ]]; then
   elif (($(last_update "$run") < 8)); then
     python train.py --resume "$run" --total-steps 32768 --no-progress
   fi
-  (($(last_update "$run") == 8)) || { echo "$run: expected checkpoint 8 after 32,768 steps" >&2; exit 1; }
+  (($(last_update "$run") == 8)) || { echo "$run: no checkpoint 8 after 32,768 steps" >&2; exit 1; }
   cp -r "$run" "$early.tmp" && mv "$early.tmp" "$early"
 fi
 if (($(last_update "$run") < 366)); then
