@@ -41,15 +41,15 @@ if (($(last_update "$run") < 366)); then
   python train.py --resume "$run" --total-steps 1500000 --no-progress
 fi
 
-evaluate() {  # OUT_NAME EPISODES [EVAL_FLAGS...]; RUN from $src
-  local out=$run/$1 episodes=$2
-  shift 2
+evaluate() {  # RUN_TO_LOAD OUT_NAME EPISODES [EVAL_FLAGS...]; writes into $run/OUT_NAME
+  local src=$1 out=$run/$2 episodes=$3
+  shift 3
   [[ -f $out/eval.json ]] || python eval.py "$src" --episodes "$episodes" --out "$out" "$@"
 }
-src=$run evaluate eval_trained 20
-src=$run evaluate eval_200ep 200
-src=$early evaluate eval_200ep_at_32768 200
+evaluate "$run" eval_trained 20
+evaluate "$run" eval_200ep 200
+evaluate "$early" eval_200ep_at_32768 200
 for h in 1 2 3; do
-  src=$run evaluate eval_trained_house_$h 20 --scene scenes/house_$h.xml
+  evaluate "$run" eval_trained_house_$h 20 --scene scenes/house_$h.xml
 done
 echo "CELL_DONE $cell s$seed"
