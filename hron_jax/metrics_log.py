@@ -8,6 +8,8 @@
     curve_rows([rows of each run]) -> [{'env_steps', 'success', 'success_std', ...}]  over all seeds
     plot_learning_curves({label: curve rows}, path)  SR and return vs env steps, mean +- std
     recent_success(rows, after_update) -> (SR, episodes)   over the rows after an update
+    window_means(rows, size, keys) -> [{'first_update', 'last_update', 'episodes', key, ...}]
+                                                 per window of `size` rows, means over seeds
 
 A resumed run rewinds the log to the update it resumes from (rows written after that checkpoint
 are replayed by the training that follows), so the files equal those of an uninterrupted run.
@@ -57,6 +59,36 @@ def recent_success(rows: list[dict], after_update: int) -> tuple[float, float]:
             hits += r['success'] * r['episodes']
             episodes += r['episodes']
     return (hits / episodes if episodes else float('nan')), episodes
+
+
+def window_means(
+    rows: list[dict],
+    size: int,
+    keys=('success', 'spl', 'episode_length', 'entropy', 'approx_kl', 'clip_frac'),
+) -> list[dict]:
+    """The run in windows of `size` logged rows (the last one may be shorter): per window its
+    first and last update, last env step, episodes finished, and each key's mean, episode-weighted
+    for the episode metrics (EPISODE_METRICS, as recent_success; NaN when the window finished
+    none) and plain over rows for the rest (losses, entropy). Values are the rows' means over seeds."""
+    out = []
+    for i in range(0, len(rows), size):
+        w = rows[i : i + size]
+        ep = np.array([r.get('episodes') or 0.0 for r in w], np.float64)
+        win = {
+            'first_update': w[0]['update'],
+            'last_update': w[-1]['update'],
+            'env_steps': w[-1]['env_steps'],
+            'episodes': float(ep.sum()),
+        }
+        for k in keys:
+            v = np.array([np.nan if r.get(k) is None else r[k] for r in w], np.float64)
+            if k in EPISODE_METRICS:
+                weight = np.where(np.isfinite(v), ep, 0.0)
+                win[k] = float((np.nan_to_num(v) * weight).sum() / weight.sum()) if weight.sum() else math.nan
+            else:
+                win[k] = float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
+        out.append(win)
+    return out
 
 
 def _num(x):

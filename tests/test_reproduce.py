@@ -697,3 +697,59 @@ def test_tiny_profile_runs_all_tables_end_to_end(cli, tmp_path):
     main = runs / 'exploratory_rgbd_sg_attn' / 's0x2'
     for scene in HELD_OUT:
         assert (held_out_dir(main, scene) / 'eval.json').is_file()
+
+
+def test_summary_prints_training_windows_and_evaluations(cli, tmp_path, capsys):
+    """--summary: SR / SPL / length per window of 32 rows weighted by the episodes each row
+    finished (a row without episodes counts for none), entropy / KL / clip fraction plain means,
+    and per evaluation its SR / SPL and the successes' own SPL and length (worked by hand)."""
+    run = tmp_path / 'exploratory_rgbd' / 's0'
+    run.mkdir(parents=True)
+    rows = []
+    for u in range(1, 35):  # windows 1-32 and 33-34
+        ep = {1: 3.0, 2: 1.0}.get(u, 0.0) if u <= 32 else 2.0
+        rows.append(
+            dict(
+                update=u,
+                env_steps=4096 * u,
+                wall_time=6.0 * u,
+                steps_per_s=600.0 + u,
+                seeds=1,
+                episodes=ep,
+                success={1: 1.0, 2: 0.0}.get(u) if u <= 32 else 0.5,
+                spl={1: 0.6, 2: 0.0}.get(u) if u <= 32 else 0.2,
+                episode_length={1: 100.0, 2: 500.0}.get(u) if u <= 32 else 300.0,
+                entropy=1.5 if u % 2 else 1.3,
+                approx_kl=0.02,
+                clip_frac=0.3 if u <= 32 else 0.5,
+            )
+        )
+    (run / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
+    (run / 'eval_200ep').mkdir()
+    per = {
+        'success': [[1.0, 0.0, 1.0, 0.0]],
+        'spl': [[0.5, 0.0, 0.3, 0.0]],
+        'episode_length': [[120, 500, 80, 500]],
+    }
+    summary = {'success': {'mean': 0.5}, 'spl': {'mean': 0.2}, 'seeds': 1, 'episodes': 4}
+    (run / 'eval_200ep' / 'eval.json').write_text(
+        json.dumps({'step': 34, 'summary': summary, 'per_episode': per})
+    )
+    assert cli.main(['--summary', str(run)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == (
+        f'{run}: update 34, 139,264 env steps per seed x 1, train wall 3.4 min (compile excluded), '
+        'median 618 env steps/s'
+    )
+    assert lines[1] == (
+        '  updates 1-32 (to 131,072 env steps): train SR 0.750 SPL 0.450 over 4 episodes, length 200; '
+        'entropy 1.40, approx KL 0.020, clip fraction 0.30'
+    )
+    assert lines[2].startswith(
+        '  updates 33-34 (to 139,264 env steps): train SR 0.500 SPL 0.200 over 4 episodes'
+    )
+    assert lines[2].endswith('clip fraction 0.50')
+    assert lines[3] == (
+        '  eval_200ep: step 34, SR 0.500 SPL 0.200 over 1 x 4 episodes; its 2 successes: SPL 0.400, 100 steps'
+    )
+    assert len(lines) == 4

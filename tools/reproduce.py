@@ -4,6 +4,7 @@
     python tools/reproduce.py --tables 1                   # train + eval what is missing, then report
     python tools/reproduce.py --from-runs                  # report only, from existing run dirs
     python tools/reproduce.py --probe directed_rgbd_sg_attn  # short run to measure env steps/s
+    python tools/reproduce.py --summary RUN [RUN ...]      # a run's training windows and evaluations
 
 The command line only: build_parser() and main(argv) -> exit status. What each option does lives in
 hron_jax.reproduction (its docstring: the grid, the runs and their archive, the profiles, the
@@ -56,6 +57,7 @@ from hron_jax.reproduction.runs import (  # noqa: E402
     repo_relative,
     restore_runs,
     run_name,
+    run_summary,
 )
 
 
@@ -85,6 +87,13 @@ def build_parser() -> argparse.ArgumentParser:
         'policy in each house of the generalisation table, then the report',
     )
     p.add_argument('--probe', nargs='+', metavar='CELL', help='measure steps/s of these cells (short runs)')
+    p.add_argument(
+        '--summary',
+        nargs='+',
+        metavar='RUN',
+        help="print these run dirs' training (SR, SPL, entropy, KL per 32 updates) and evaluations; "
+        'run nothing',
+    )
     p.add_argument('--tables', type=int, nargs='+', default=[1, 2, 3], choices=[1, 2, 3])
     p.add_argument('--cells', help='regex on cell names (e.g. "choice_.*_dist")')
     p.add_argument(
@@ -141,6 +150,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     p = build_parser()
     a = p.parse_args(argv)
+    if a.summary:
+        for run in a.summary:
+            print('\n'.join(run_summary(Path(run))))
+        return 0
     out = Path(a.out)
     runs = Path(a.runs) if a.runs else default_runs(out)
     in_process = a.profile in IN_PROCESS

@@ -16,7 +16,8 @@ Reading: cell_runs(runs, cell) -> its run dirs; num_seeds_of, steps_per_second (
 steps/s); collect_cell(runs, cell) -> a dict of its evaluated runs' per-seed SR / SPL (mean_std:
 mean, sample std, n), env steps, wall times, machines and configs in words (grid.describe_config;
 per aspect as rows are compared, grid.comparable_settings), or None; seed0_dir -> the run holding
-seed 0. Writes nothing but the archive and restored runs.
+seed 0; run_summary(run_dir) -> one run's training windows and evaluations in lines of text.
+Writes nothing but the archive and restored runs.
 """
 
 from __future__ import annotations
@@ -294,6 +295,47 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
         'unrecorded': unrecorded,
         'loads': loads,
     }
+
+
+def run_summary(run_dir: Path, window: int = 32) -> list[str]:
+    """A run in lines of text, for notes and the README's prose: its length, training time and
+    median env steps/s; its training metrics per window of `window` logged rows
+    (metrics_log.window_means: SR and SPL of the episodes finished in training, with actions
+    sampled, entropy, approx KL, clip fraction); then each evaluation under it (eval*/eval.json:
+    SR and SPL, and over the successful episodes alone their SPL and mean length in steps)."""
+    from hron_jax.metrics_log import window_means
+
+    run_dir = Path(run_dir)
+    rows = metric_rows(run_dir)
+    if not rows:
+        return [f'{run_dir}: no metrics.jsonl rows']
+    last = rows[-1]
+    rate = steps_per_second([run_dir])
+    lines = [
+        f'{run_dir}: update {last["update"]}, {last["env_steps"]:,} env steps per seed x '
+        f'{last.get("seeds", 1)}, train wall {last["wall_time"] / 60:.1f} min (compile excluded), '
+        f'median {rate:.0f} env steps/s'
+    ]
+    for w in window_means(rows, window):
+        lines.append(
+            f'  updates {w["first_update"]}-{w["last_update"]} (to {w["env_steps"]:,} env steps): train SR '
+            f'{w["success"]:.3f} SPL {w["spl"]:.3f} over {w["episodes"]:.0f} episodes, length '
+            f'{w["episode_length"]:.0f}; entropy {w["entropy"]:.2f}, approx KL {w["approx_kl"]:.3f}, '
+            f'clip fraction {w["clip_frac"]:.2f}'
+        )
+    for path in sorted(run_dir.glob('eval*/eval.json')):
+        e = json.loads(path.read_text())
+        s, per = e['summary'], e['per_episode']
+        success = np.ravel(per['success']).astype(bool)
+        line = (
+            f'  {path.parent.name}: step {e["step"]:,}, SR {s["success"]["mean"]:.3f} SPL '
+            f'{s["spl"]["mean"]:.3f} over {s["seeds"]} x {s["episodes"]} episodes'
+        )
+        if success.any():
+            spl, length = np.ravel(per['spl'])[success], np.ravel(per['episode_length'])[success]
+            line += f'; its {success.sum()} successes: SPL {spl.mean():.3f}, {length.mean():.0f} steps'
+        lines.append(line)
+    return lines
 
 
 def mean_std(x) -> tuple[float, float | None, int]:
