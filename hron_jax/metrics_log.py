@@ -53,12 +53,11 @@ def summarize_chunk(metrics: dict) -> dict[str, np.ndarray]:
 def recent_success(rows: list[dict], after_update: int) -> tuple[float, float]:
     """(success rate, episodes) over the episodes of the rows logged after `after_update`: each
     row's mean success weighted by its episode count (both means over seeds)."""
-    hits = episodes = 0.0
-    for r in rows:
-        if r['update'] > after_update and r.get('success') is not None and r.get('episodes'):
-            hits += r['success'] * r['episodes']
-            episodes += r['episodes']
-    return (hits / episodes if episodes else float('nan')), episodes
+    after = [r for r in rows if r['update'] > after_update]
+    if not after:
+        return float('nan'), 0.0
+    (w,) = window_means(after, len(after), ('success',))
+    return w['success'], w['episodes']
 
 
 def window_means(
@@ -77,7 +76,7 @@ def window_means(
         win = {
             'first_update': w[0]['update'],
             'last_update': w[-1]['update'],
-            'env_steps': w[-1]['env_steps'],
+            'env_steps': w[-1].get('env_steps'),
             'episodes': float(ep.sum()),
         }
         for k in keys:
