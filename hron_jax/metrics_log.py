@@ -66,9 +66,10 @@ def window_means(
     keys=('success', 'spl', 'episode_length', 'entropy', 'approx_kl', 'clip_frac'),
 ) -> list[dict]:
     """The run in windows of `size` logged rows (the last one may be shorter): per window its
-    first and last update, last env step, episodes finished, and each key's mean, episode-weighted
-    for the episode metrics (EPISODE_METRICS, as recent_success; NaN when the window finished
-    none) and plain over rows for the rest (losses, entropy). Values are the rows' means over seeds."""
+    first and last update, last env step, episodes finished, and each key's mean: for the episode
+    metrics (EPISODE_METRICS) each row's value weighted by the episodes it finished (NaN when the
+    window finished none), for the rest (losses, entropy) plain over rows. Values are the rows'
+    means over seeds."""
     out = []
     for i in range(0, len(rows), size):
         w = rows[i : i + size]
