@@ -4,13 +4,16 @@
 #   cd CHECKOUT && bash /path/to/tools/full_budget_cell.sh TASK MODEL SEED [TRAIN_FLAGS...]
 #
 # Runs in the current directory's checkout (the full-budget tables freeze one commit for a whole
-# table: run it from a worktree of that commit), into runs/full/<task>_<model>/s<seed>:
-#   1. train.py to 32,768 env steps (or resume it), then copy the run as
-#      runs/full/ckpt32k_<cell><seed>
+# table: run it from a worktree of that commit), into runs/full/<task>_<model>/s<seed>, with the
+# settings of the task's `cpu` profile (hron_jax.reproduction.grid.PROFILES) but its budget:
+#   1. train.py to the profile's budget (navigation 32,768 env steps, choice 61,440) or resume it,
+#      then copy the run as runs/full/ckpt<early>_<cell><seed>
 #      (train.py keeps 3 checkpoints, so the early one must be copied to be evaluated at the end);
-#   2. train.py --resume to 1,500,000 env steps (resumes from the last checkpoint after a stop);
-#   3. six evaluations (eval.py, sampled actions, eval seed 0): eval_trained (20 episodes, the
-#      paper's protocol), eval_200ep, eval_200ep_at_32768, eval_trained_house_{1,2,3} (20 each).
+#   2. train.py --resume to the paper's budget (navigation 1,500,000 env steps; choice 200,000, the
+#      task default: the paper states none); resumes from the last checkpoint after a stop;
+#   3. evaluations (eval.py, sampled actions, eval seed 0): navigation eval_trained (20 episodes,
+#      the paper's protocol), eval_200ep, eval_200ep_at_32768, eval_trained_house_{1,2,3} (20
+#      each); choice eval_trained and eval_200ep_at_61440 (200 episodes each, the choice protocol).
 # Every step is skipped when its output exists, so rerunning after an interruption continues.
 # Prints CELL_DONE <cell> s<seed> at the end. TRAIN_FLAGS go to the first train.py (--distractors;
 # --premap: the pre-mapped cells).
@@ -21,24 +24,33 @@ cell=${task}_${model}
 # The grid's cell names (hron_jax.reproduction.grid):
 [[ " $* " == *" --distractors "* ]] && cell=${cell}_dist
 [[ " $* " == *" --premap "* ]] && cell=${cell}_pm
+# Env steps and update numbers (env steps per update: 64 envs x 64 steps, choice 64 x 4) of the
+# early copy and of the end; choice's profile also sets the HGT's width.
+if [[ $task == choice ]]; then
+  early_steps=61440 early_update=240 total_steps=200000 last=781
+  set -- --model-option hidden=32 "$@"
+else
+  early_steps=32768 early_update=8 total_steps=1500000 last=366
+fi
 run=runs/full/$cell/s$seed
-early=runs/full/ckpt32k_${cell}${seed}
+early=runs/full/ckpt$((early_steps / 1024))k_${cell}${seed}
 mkdir -p runs/full
 
 last_update() { ls "$1/checkpoints" 2>/dev/null | grep -E '^[0-9]+$' | sort -n | tail -1; }
 
 if [[ ! -d $early ]]; then
   if [[ -z $(last_update "$run") ]]; then
-    python train.py --task "$task" --model "$model" --seed "$seed" "$@" --total-steps 32768 \
+    python train.py --task "$task" --model "$model" --seed "$seed" "$@" --total-steps $early_steps \
       --out "$run" --no-progress
-  elif (($(last_update "$run") < 8)); then
-    python train.py --resume "$run" --total-steps 32768 --no-progress
+  elif (($(last_update "$run") < early_update)); then
+    python train.py --resume "$run" --total-steps $early_steps --no-progress
   fi
-  (($(last_update "$run") == 8)) || { echo "$run: no checkpoint 8 after 32,768 steps" >&2; exit 1; }
+  (($(last_update "$run") == early_update)) ||
+    { echo "$run: no checkpoint $early_update after $early_steps env steps" >&2; exit 1; }
   cp -r "$run" "$early.tmp" && mv "$early.tmp" "$early"
 fi
-if (($(last_update "$run") < 366)); then
-  python train.py --resume "$run" --total-steps 1500000 --no-progress
+if (($(last_update "$run") < last)); then
+  python train.py --resume "$run" --total-steps $total_steps --no-progress
 fi
 
 evaluate() {  # RUN_TO_LOAD OUT_NAME EPISODES [EVAL_FLAGS...]; writes into $run/OUT_NAME
@@ -46,10 +58,15 @@ evaluate() {  # RUN_TO_LOAD OUT_NAME EPISODES [EVAL_FLAGS...]; writes into $run/
   shift 3
   [[ -f $out/eval.json ]] || python eval.py "$src" --episodes "$episodes" --out "$out" "$@"
 }
-evaluate "$run" eval_trained 20
-evaluate "$run" eval_200ep 200
-evaluate "$early" eval_200ep_at_32768 200
-for h in 1 2 3; do
-  evaluate "$run" eval_trained_house_$h 20 --scene scenes/house_$h.xml
-done
+if [[ $task == choice ]]; then
+  evaluate "$run" eval_trained 200
+  evaluate "$early" eval_200ep_at_$early_steps 200
+else
+  evaluate "$run" eval_trained 20
+  evaluate "$run" eval_200ep 200
+  evaluate "$early" eval_200ep_at_$early_steps 200
+  for h in 1 2 3; do
+    evaluate "$run" eval_trained_house_$h 20 --scene scenes/house_$h.xml
+  done
+fi
 echo "CELL_DONE $cell s$seed"
