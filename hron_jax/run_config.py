@@ -55,9 +55,13 @@ from hron_jax.ppo import PPOConfig
 # ~10-30 k env steps, often before it had solved the task, and 3 of 6 seeds froze at SR 0.75 (one
 # more reached 1.0 and fell back to it): wrong with probability ~1 in exactly one of the four
 # (goal, layout) cases, where the saturated softmax gets no gradient. At 1e-4, 9 of 9 seeds reached
-# 1.0 between ~20 and ~55 k env steps and stayed there. RLlib's adaptive KL penalty (the paper
-# preset's) did not help at 3e-4: its coefficient halves after each update whose KL is below
-# target / 2, which took it from 0.2 to ~0 within the first ~20 updates.
+# 1.0 between ~20 and ~55 k env steps and stayed there up to 61,440. RLlib's adaptive KL penalty
+# (the paper preset's) did not help at 3e-4: its coefficient halves after each update whose KL is
+# below target / 2, which took it from 0.2 to ~0 within the first ~20 updates. Trained on to the
+# 200,000 here, solved seeds can lose it again (2026-12-07, SG without distractors, 8 seeds): 6 of
+# 8 fell below SR 0.9 at least once and 2 ended there with advantages standardised per minibatch,
+# 0 of 8 with `advantage_norm='none'`, which reaches 1.0 later (docs/reproduction_full_budget/
+# README.md, "Table I's late collapses"). Not changed: the tables ran these defaults.
 # ------------------------------------------------------------------------------------------------
 _NAV_PPO = PPOConfig(
     num_envs=64,

@@ -448,10 +448,13 @@ def test_a_shorter_run_is_resumed_to_the_profile_budget(tmp_path, monkeypatch):
 def test_a_second_report_has_its_own_runs_archive_and_figures(cli, tmp_path):
     """Runs of another budget (here the paper's 1.5 M env steps) make a report of their own: its
     archive and figures lie in the folder named as it, its runs default to runs/<its name>, and the
-    first report's folder is left as it was; its note says every row ran the paper's budget."""
+    first report's folder is left as it was; its notes say every row ran the paper's budget (Table I:
+    the choice task's default, the paper states none)."""
     docs, cell = tmp_path / 'docs', 'directed_rgbd_sg_attn_dist'
     first, second = docs / 'reproduction.md', docs / 'full_budget.md'
     fake_run(tmp_path / 'runs_a' / cell / 's0', 0, 0.9, 0.7, task='directed')
+    fake_run(tmp_path / 'runs_a' / 'choice_rgbd_sg_attn_dist' / 's0', 0, 1.0, 1.0)
+    fake_run(tmp_path / 'runs_b' / 'choice_rgbd_sg_attn_dist' / 's0', 0, 1.0, 1.0, total_steps=200_000)
     full = tmp_path / 'runs_b' / cell / 's0'
     fake_run(full, 0, 1.0, 0.9, task='directed', total_steps=1_500_000)
     rows = [json.loads(l) for l in (full / 'metrics.jsonl').read_text().splitlines()]
@@ -477,6 +480,13 @@ def test_a_second_report_has_its_own_runs_archive_and_figures(cli, tmp_path):
         in text
     )
     assert 'early learning' not in table2(text) and 'early learning' in table2(first.read_text())
+    table1 = lambda t: t.split('## Table I:')[1].split('## Table II:')[0]
+    assert "(2) Budget and settings: every row with runs ran the task default's 200,000 env steps" in table1(
+        text
+    )
+    assert '(2) Profile `cpu`' in table1(first.read_text()) and 'Budget and settings' not in table1(
+        first.read_text()
+    )
     assert f'python tools/reproduce.py --from-runs --out {repo_relative(second)} ' in text
     # The commands of its cells without runs write into its own run dirs.
     assert f'--out {repo_relative(tmp_path / "runs_b")}/directed_rgbd/s$SEED && python eval.py' in text

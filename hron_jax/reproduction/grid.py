@@ -252,16 +252,34 @@ def settings_text(cfg, graph: bool = True) -> str:
 
 def notes(table: int, paper_budget: bool = False) -> list[str]:
     """Facts about the setup that reading a table needs. paper_budget: every row of the table that
-    has runs ran the paper's env steps per seed (then the navigation tables' note (1) says so
-    instead of describing the `cpu` profile's early-learning budget)."""
+    has runs ran the paper's env steps per seed, or the choice task's default where the paper
+    states none (then the notes say so instead of describing the `cpu` profile's shorter budget,
+    and Table I's say what training that long measured)."""
     cpu = {t: profile_config('cpu', main_cell(t)) for t in PAPER_STEPS}
+    same_function = (
+        'Notes. (1) Without distractors the choice scene has exactly 4 nodes, all of goal '
+        'categories (2 circles, 2 rectangles), so task-driven pooling and mean pooling select the '
+        'same nodes: SG and SG + TD ATTN compute the same function and, from the same seed, train '
+        'identically (their rows and curves coincide).'
+    )
+    if table == 1 and paper_budget:
+        return [
+            f'{same_function} (2) Budget and settings: every row with runs ran the task default\'s '
+            f"{PAPER_STEPS['choice']:,} env steps per seed (the paper states no budget for this task), "
+            "with the settings of its Config column (the paper's settings are `train.py --preset "
+            "paper`). A seed that has not left chance SR (0.5) by then counts as it is. (3) Trained "
+            'this long, a seed that has solved the task can lose it again (the curves\' dips): '
+            'deterministic and wrong in one of the four goal x layout cases (SR 0.75) or back at '
+            'chance. Measured on 8 vmapped SG seeds without distractors (2026-12-07): with the '
+            "task defaults' advantages standardised per minibatch, 6 fell below training SR 0.9 "
+            'after first reaching 1.0 and 2 ended below 0.9; standardised per batch (RLlib\'s, the '
+            'paper preset\'s) 5 and 3; not standardised (`--ppo-option advantage_norm=none`) none '
+            '(docs/reproduction_full_budget/README.md).'
+        ]
     if table == 1:
         c = cpu['choice']
         return [
-            'Notes. (1) Without distractors the choice scene has exactly 4 nodes, all of goal '
-            'categories (2 circles, 2 rectangles), so task-driven pooling and mean pooling select the '
-            'same nodes: SG and SG + TD ATTN compute the same function and, from the same seed, train '
-            "identically (their rows and curves coincide). (2) Profile `cpu`, not the paper's "
+            f"{same_function} (2) Profile `cpu`, not the paper's "
             f'settings: {settings_text(c)}; the HGT width 32 instead of the release\'s 128 lets '
             'the 12 runs fit ~25 min on 2 shared cores (2026-12-03); at width 128 a 10-update trial of '
             'the distractor setting measured ~42 env steps/s (vs ~280 at width 32, load ~5). A seed '
