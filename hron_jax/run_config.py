@@ -60,7 +60,8 @@ from hron_jax.ppo import PPOConfig
 # below target / 2, which took it from 0.2 to ~0 within the first ~20 updates. Trained on to the
 # 200,000 here, solved seeds can lose it again (2026-12-07, SG without distractors, 8 seeds): 6 of
 # 8 fell below SR 0.9 at least once and 2 ended there with advantages standardised per minibatch,
-# 0 of 8 with `advantage_norm='none'`, which reaches 1.0 later (docs/reproduction_full_budget/
+# 0 of 8 with `advantage_norm='none'`, which reaches 1.0 later: SG with distractors left chance in
+# 1 of 3 seeds by 200,000 unstandardised, 2 of 3 standardised (docs/reproduction_full_budget/
 # README.md, "Table I's late collapses"). Not changed: the tables ran these defaults.
 # ------------------------------------------------------------------------------------------------
 _NAV_PPO = PPOConfig(

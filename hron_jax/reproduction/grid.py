@@ -273,8 +273,10 @@ def notes(table: int, paper_budget: bool = False) -> list[str]:
             'chance. Measured on 8 vmapped SG seeds without distractors (2026-12-07): with the '
             "task defaults' advantages standardised per minibatch, 6 fell below training SR 0.9 "
             'after first reaching 1.0 and 2 ended below 0.9; standardised per batch (RLlib\'s, the '
-            'paper preset\'s) 5 and 3; not standardised (`--ppo-option advantage_norm=none`) none '
-            '(docs/reproduction_full_budget/README.md).'
+            'paper preset\'s) 5 and 3; not standardised (`--ppo-option advantage_norm=none`) none. '
+            'Unstandardised advantages learn later, though: 3 vmapped seeds of SG with distractors '
+            'left chance in 1 of 3 by 200,000 env steps (at ~151,000), against 2 of 3 in this '
+            "table's row (docs/reproduction_full_budget/README.md)."
         ]
     if table == 1:
         c = cpu['choice']
