@@ -144,13 +144,19 @@ def test_report_from_runs(cli, tmp_path):
         "- machine: the runs' processes ran on CPU A, 2 logical cores; CPU B, 2 logical cores "
         '(1 runs named no machine), JAX 0.10.2 on cpu:0; 1-min load average during the runs 1.2-3.4 ('
     ) in (tmp_path / 'machines.md').read_text()
-    # The table's cells without runs are listed as not run, with the paper profile's commands;
-    # nothing is invented, and an estimate from runs under other settings says so. A table without
-    # any run says so in one line and points to --plan (which lists its commands).
+    # The table's cells without runs are listed as not run, with the commands of the profile whose
+    # settings its runs ran (here cpu, at the runs' budget), costed from those runs; nothing is
+    # invented. A table without any run says so in one line and points to --plan (which lists its
+    # commands).
     table1 = text.split('## Table I:')[1].split('## Table II:')[0]
     assert table1.count('| not yet run |') == 3
-    assert 'python train.py --task choice --model rgbd_sg --seed $SEED --distractors --preset paper' in table1
-    assert 'measured with preset default' in table1 and 'a rough figure' in table1
+    assert "with the settings of this table's runs, the `cpu` profile at 1,024 env steps" in table1
+    assert (
+        'python train.py --task choice --model rgbd_sg --seed $SEED --distractors --total-steps 1024 '
+        '--model-option hidden=32 --no-progress --out'
+    ) in table1
+    assert '128 env steps/s (proxy: runs of choice_rgbd_sg_attn_dist) -> 24 s' in table1
+    assert 'a rough figure' not in table1
     for table in (2, 3):
         assert (
             f'No runs of this table under `{runs}`. `python tools/reproduce.py --plan --tables {table}`'
@@ -160,6 +166,15 @@ def test_report_from_runs(cli, tmp_path):
     # The protocol names the paper's settings, and the cpu profile says it is not them.
     assert '`train.py --preset paper` (navigation: camera 128x128; HGT hidden 128, 2 heads, 3 layers' in text
     assert "Profile `cpu`, not the paper's settings" in text
+    # Runs of settings no profile gives: the paper profile's commands, and the estimate from those
+    # runs says it is rough.
+    other = tmp_path / 'other'
+    fake_run(other / 'choice_rgbd_sg_attn_dist' / 's0', 0, 1.0, 1.0, lr=1e-3)
+    assert cli.main(['--from-runs', '--runs', str(other), '--out', str(tmp_path / 'other.md')]) == 0
+    table1 = (tmp_path / 'other.md').read_text().split('## Table I:')[1].split('## Table II:')[0]
+    assert 'commands per seed with the `paper` profile, i.e. `train.py --preset paper`, then' in table1
+    assert 'python train.py --task choice --model rgbd_sg --seed $SEED --distractors --preset paper' in table1
+    assert 'measured with preset default' in table1 and 'a rough figure' in table1
 
 
 def test_one_seed_has_no_spread_and_old_config_files_are_read(tmp_path):
@@ -488,8 +503,13 @@ def test_a_second_report_has_its_own_runs_archive_and_figures(cli, tmp_path):
         first.read_text()
     )
     assert f'python tools/reproduce.py --from-runs --out {repo_relative(second)} ' in text
-    # The commands of its cells without runs write into its own run dirs.
+    # The commands of its cells without runs write into its own run dirs, with its rows' settings
+    # (the cpu profile) at its rows' budget.
     assert f'--out {repo_relative(tmp_path / "runs_b")}/directed_rgbd/s$SEED && python eval.py' in text
+    assert (
+        'python train.py --task directed --model rgbd --seed $SEED --distractors --total-steps 1500000 '
+        '--no-progress'
+    ) in table2(text)
     # Without --runs each report reads (and restores its archive into) run dirs of its own.
     assert default_runs(ROOT / 'docs' / 'reproduction.md') == ROOT.resolve() / 'runs' / 'repro'
     assert default_runs(second) == ROOT.resolve() / 'runs' / 'full_budget'

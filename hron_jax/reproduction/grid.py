@@ -386,10 +386,17 @@ def ordering_sentence(what: str, ours: dict[str, float], paper: dict[str, float]
 # ------------------------------------------------------------------------------------------------
 
 
-def train_argv(cell: Cell, seed: int, out: Path, profile: str, extra=()) -> list[str]:
+def train_argv(
+    cell: Cell, seed: int, out: Path, profile: str, extra=(), total_steps: int | None = None
+) -> list[str]:
+    """The profile's train.py command for one seed of a cell; total_steps: a budget other than the
+    profile's (replaces its --total-steps)."""
     opts = PROFILES[profile][cell.task]
     if opts is None:
         raise SystemExit(f'profile {profile!r} does not cover the {cell.task} task; use --profile paper')
+    if total_steps is not None:
+        i = opts.index('--total-steps') if '--total-steps' in opts else len(opts)
+        opts = opts[:i] + ['--total-steps', str(total_steps)] + opts[i + 2 :]
     argv = ['python', 'train.py', '--task', cell.task, '--model', cell.model, '--seed', str(seed)]
     argv += ['--distractors'] if cell.distractors else []
     argv += ['--premap'] if cell.premap else []

@@ -26,7 +26,9 @@ from hron_jax.reproduction.grid import (
     GENERALISATION_MODELS,
     GRID,
     HELD_OUT,
+    IN_PROCESS,
     PAPER_STEPS,
+    PROFILES,
     TABLE_TITLES,
     TRAIN_HOUSE,
     Cell,
@@ -101,9 +103,10 @@ def fmt_duration(s):
 
 
 def estimate(
-    cell: Cell, runs: Path, seeds: int, profile: str, archive: Path | None = None
+    cell: Cell, runs: Path, seeds: int, profile: str, archive: Path | None = None, steps: int | None = None
 ) -> tuple[str, float | None]:
-    """(text, seconds): training cost of `seeds` seeds of a cell from measured env steps/s, from the
+    """(text, seconds): training cost of `seeds` seeds of a cell (`steps` env steps each, by default
+    the profile's budget) from measured env steps/s, from the
     first source that has a measurement: its own runs (in RUNS, else in `archive`, which --plan reads
     without restoring it), its --probe, then (flagged as a proxy) the runs and the probe of the same
     model on the same task in another distractor / premap setting, then of the main model on the same
@@ -143,7 +146,7 @@ def estimate(
             break
     if rate is None:
         return 'not measured', None
-    steps = profile_steps(profile, cell.task)
+    steps = steps or profile_steps(profile, cell.task)
     sec = seeds * steps / rate
     return f'{rate:.0f} env steps/s ({src}) -> {fmt_duration(sec)}', sec
 
@@ -166,6 +169,21 @@ def _settings_mismatch(run_dir: Path, target) -> str:
 
 
 ROUGH = 'a rough figure'
+
+
+def runs_profile(runs: Path, done: list[tuple[Cell, dict]]) -> tuple[str, int | None] | None:
+    """(profile, budget) whose train.py commands give the settings (preset, camera, physics, PPO)
+    that every run of a table's done cells ran, so that its missing cells are run as its rows were:
+    a profile run per seed, and the runs' budget where they share one that is not the profile's
+    (else None; the full-budget report: profile cpu at 1,500,000 env steps). None when no profile
+    matches them all."""
+    dirs = [(c, d) for c, _ in done for d in cell_runs(runs, c)]
+    for profile in (p for p in PROFILES if p not in IN_PROCESS):
+        if dirs and not any(_settings_mismatch(d, profile_config(profile, c)) for c, d in dirs):
+            budgets = {b for _, f in done for b in f['budgets']}
+            budget = budgets.pop() if len(budgets) == 1 else None
+            return profile, None if budget == profile_steps(profile, done[0][0].task) else budget
+    return None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -486,20 +504,27 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                 '',
             ]
         if missing:
+            # The table's rows ran one profile's settings: its other cells are to be run the same
+            # way (the full-budget report: not the paper preset it would otherwise name).
+            matched = runs_profile(runs, done)
+            profile, steps = matched or ('paper', None)
+            how = f'the `{profile}` profile' + (f' at {steps:,} env steps' if steps else '')
+            how += ', i.e. `train.py --preset paper`' if profile == 'paper' else ''
+            how = f"the settings of this table's runs, {how}" if matched else how
             lines += [
-                'Not yet run (commands per seed with the `paper` profile, i.e. `train.py --preset '
-                'paper`, then the report; estimated training cost for '
-                f'{seeds} seeds at {PAPER_STEPS[cells[0].task]:,} env '
+                f'Not yet run (commands per seed with {how}, then the report; estimated training '
+                f'cost for {seeds} seeds at {steps or profile_steps(profile, cells[0].task):,} env '
                 'steps per seed, from measured steps/s, compilation and evaluation excluded):',
                 '',
             ]
             total, rough = 0.0, False
             for c in missing:
-                est, sec = estimate(c, runs, seeds, 'paper')
+                est, sec = estimate(c, runs, seeds, profile, steps=steps)
                 total += sec or 0.0
                 rough |= ROUGH in est
                 rel = f'{repo_relative(runs)}/{c.name}/s$SEED'
-                cmd = ' '.join(train_argv(c, 0, Path(rel), 'paper')).replace('--seed 0', '--seed $SEED')
+                argv = train_argv(c, 0, Path(rel), profile, total_steps=steps)
+                cmd = ' '.join(argv).replace('--seed 0', '--seed $SEED')
                 lines += [
                     f'- `{c.name}` ({c.label}{", distractors" if c.distractors else ""}): estimated {est}',
                     f'  `for SEED in 0 1 2; do {cmd} && python eval.py '
@@ -514,9 +539,13 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
             if rough:
                 lines += [
                     '',
-                    f'Estimates marked "{ROUGH}" come from runs under other settings than the paper '
-                    "profile's `--preset paper` (e.g. 4 PPO epochs per update and a 32x32 camera "
-                    'instead of 30 epochs and 128x128): they are presumably lower bounds.',
+                    f'Estimates marked "{ROUGH}" come from runs under other settings than the '
+                    + (
+                        "paper profile's `--preset paper` (e.g. 4 PPO epochs per update and a 32x32 "
+                        'camera instead of 30 epochs and 128x128): they are presumably lower bounds.'
+                        if profile == 'paper'
+                        else f"`{profile}` profile's (the cost of an env step depends on them)."
+                    ),
                 ]
             lines.append('')
     if any(found[c] is not None for c in GRID if c.table == 3):

@@ -158,7 +158,7 @@ def probe(cell: Cell, runs: Path, updates: int = 1) -> None:
         print(f'probe {cell.name}: exists ({out})')
         return
     steps = profile_config('paper', cell).ppo.batch_size * updates
-    argv = train_argv(cell, 0, out, 'paper', extra=['--total-steps', str(steps), '--log-every', '1'])
+    argv = train_argv(cell, 0, out, 'paper', extra=['--log-every', '1'], total_steps=steps)
     out.parent.mkdir(parents=True, exist_ok=True)
     mach = machine()
     wall = run_logged(argv, out.parent / f'{cell.name}.log')
