@@ -510,6 +510,15 @@ def test_a_second_report_has_its_own_runs_archive_and_figures(cli, tmp_path):
         'python train.py --task directed --model rgbd --seed $SEED --distractors --total-steps 1500000 '
         '--no-progress'
     ) in table2(text)
+    # A cell with fewer seeds than planned lists the seeds left, costed from its own runs.
+    assert (
+        f'- `{cell}` (RGB-D + SG + TD ATTN, distractors), seeds 1, 2: estimated 128 env steps/s (its runs)'
+        in (table2(text))
+    )
+    assert 'for SEED in 1 2; do python train.py --task directed --model rgbd_sg_attn --seed $SEED' in table2(
+        text
+    )
+    assert 'for SEED in 0 1 2; do python train.py --task directed --model rgbd --seed $SEED' in table2(text)
     # Without --runs each report reads (and restores its archive into) run dirs of its own.
     assert default_runs(ROOT / 'docs' / 'reproduction.md') == ROOT.resolve() / 'runs' / 'repro'
     assert default_runs(second) == ROOT.resolve() / 'runs' / 'full_budget'

@@ -458,14 +458,13 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
             + ['Seeds x episodes', 'Env steps / seed', 'Train wall / seed', 'Process wall / seed', 'Config']
         )
         lines += ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
-        missing = []
+        to_run = []  # (cell, its planned seeds without a run)
         for c in cells:
             f = found[c]
             cond = ('yes' if c.distractors else 'no') if table < 3 else ('yes' if c.premap else 'no')
             row = [cond, c.label, _pm(c.paper_sr)] + ([_pm(c.paper_spl)] if spl else [])
             if f is None:
                 row += ['not yet run'] + (['not yet run'] if spl else []) + ['-'] * 5
-                missing.append(c)
             else:
                 row += [_ours(f['sr'])] + ([_ours(f['spl'])] if spl else [])
                 row += [
@@ -476,6 +475,8 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                     config_text(f),
                 ]
             lines.append('| ' + ' | '.join(row) + ' |')
+            left = [s for s in range(seeds) if f is None or s not in f['seeds']]
+            to_run += [(c, left)] if left else []
         lines.append('')
         done = [(c, found[c]) for c in cells if found[c] is not None]
         if done:
@@ -503,37 +504,40 @@ def write_report(runs: Path, out: Path, seeds: int) -> str:
                 'sampled actions) against env steps per seed; band: sample std (ddof=1) over seeds.',
                 '',
             ]
-        if missing:
-            # The table's rows ran one profile's settings: its other cells are to be run the same
-            # way (the full-budget report: not the paper preset it would otherwise name).
+        if to_run:
+            # The table's rows ran one profile's settings: its other cells and seeds are to be run
+            # the same way (the full-budget report: not the paper preset it would otherwise name).
             matched = runs_profile(runs, done)
             profile, steps = matched or ('paper', None)
             how = f'the `{profile}` profile' + (f' at {steps:,} env steps' if steps else '')
             how += ', i.e. `train.py --preset paper`' if profile == 'paper' else ''
             how = f"the settings of this table's runs, {how}" if matched else how
             lines += [
-                f'Not yet run (commands per seed with {how}, then the report; estimated training '
-                f'cost for {seeds} seeds at {steps or profile_steps(profile, cells[0].task):,} env '
-                'steps per seed, from measured steps/s, compilation and evaluation excluded):',
+                f'Not yet run, of {seeds} seeds per cell (commands per seed with {how}, then the '
+                f'report; estimated training cost of the seeds left at '
+                f'{steps or profile_steps(profile, cells[0].task):,} env steps per seed, from '
+                'measured steps/s, compilation and evaluation excluded):',
                 '',
             ]
             total, rough = 0.0, False
-            for c in missing:
-                est, sec = estimate(c, runs, seeds, profile, steps=steps)
+            for c, left in to_run:
+                est, sec = estimate(c, runs, len(left), profile, steps=steps)
                 total += sec or 0.0
                 rough |= ROUGH in est
                 rel = f'{repo_relative(runs)}/{c.name}/s$SEED'
                 argv = train_argv(c, 0, Path(rel), profile, total_steps=steps)
                 cmd = ' '.join(argv).replace('--seed 0', '--seed $SEED')
+                which = f'seed {left[0]}' if len(left) == 1 else f'seeds {", ".join(map(str, left))}'
                 lines += [
-                    f'- `{c.name}` ({c.label}{", distractors" if c.distractors else ""}): estimated {est}',
-                    f'  `for SEED in 0 1 2; do {cmd} && python eval.py '
+                    f'- `{c.name}` ({c.label}{", distractors" if c.distractors else ""}), {which}: '
+                    f'estimated {est}',
+                    f'  `for SEED in {" ".join(map(str, left))}; do {cmd} && python eval.py '
                     f'{rel} --episodes {EPISODES[c.task]} --out {rel}/{EVAL_DIR}; done`',
                 ]
             if total:
                 lines += [
                     '',
-                    f'Total estimated training for these cells on this machine: '
+                    f'Total estimated training of the seeds left on this machine: '
                     f'{fmt_duration(total)} ({total / 86400:.0f} days).',
                 ]
             if rough:
