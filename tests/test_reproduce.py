@@ -471,7 +471,7 @@ def test_a_second_report_has_its_own_runs_archive_and_figures(cli, tmp_path):
     fake_run(tmp_path / 'runs_a' / 'choice_rgbd_sg_attn_dist' / 's0', 0, 1.0, 1.0)
     fake_run(tmp_path / 'runs_b' / 'choice_rgbd_sg_attn_dist' / 's0', 0, 1.0, 1.0, total_steps=200_000)
     full = tmp_path / 'runs_b' / cell / 's0'
-    fake_run(full, 0, 1.0, 0.9, task='directed', total_steps=1_500_000)
+    fake_run(full, 0, 1.0, 0.9, task='directed', total_steps=1_500_000, model_option=[])
     rows = [json.loads(l) for l in (full / 'metrics.jsonl').read_text().splitlines()]
     rows[-1]['env_steps'] = 1_500_000
     (full / 'metrics.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in rows))
@@ -513,7 +513,7 @@ def test_a_second_report_has_its_own_runs_archive_and_figures(cli, tmp_path):
     # A cell with fewer seeds than planned lists the seeds left, costed from its own runs.
     assert (
         f'- `{cell}` (RGB-D + SG + TD ATTN, distractors), seeds 1, 2: estimated 128 env steps/s (its runs)'
-        in (table2(text))
+        in table2(text)
     )
     assert 'for SEED in 1 2; do python train.py --task directed --model rgbd_sg_attn --seed $SEED' in table2(
         text

@@ -4,11 +4,12 @@ write_report(runs, out, seeds) -> the Markdown it writes to `out`: the machine a
 table the rows (the paper's SR / SPL beside ours: _pm, _ours, config_text; a cell's numbers from
 runs.collect_cell), the per-seed values, table_comparison (rows that ran different settings; the
 models' order against the paper's), grid.notes, the learning curves (plot_curves: a PNG in the
-report's folder, runs.report_dir) and, for cells without runs, their commands and estimated cost
-(a table without any run: one line); then generalisation_section (when Table III has runs) and
-attention_section (what the runner's held-out, reference and attention runs left in the run
-dirs). It archives the runs it read (runs.save_runs). estimate(cell, ...) -> (text, seconds) of
-training a cell's seeds from measured env steps/s (also printed by --plan).
+report's folder, runs.report_dir) and, for cells and seeds without runs, their commands
+(runs_profile: the settings of the table's runs) and estimated cost (a table without any run: one
+line); then generalisation_section (when Table III has runs) and attention_section (what the
+runner's held-out, reference and attention runs left in the run dirs). It archives the runs it read
+(runs.save_runs). estimate(cell, ...) -> (text, seconds) of training a cell's seeds from measured
+env steps/s (also printed by --plan).
 """
 
 from __future__ import annotations
@@ -106,12 +107,12 @@ def estimate(
     cell: Cell, runs: Path, seeds: int, profile: str, archive: Path | None = None, steps: int | None = None
 ) -> tuple[str, float | None]:
     """(text, seconds): training cost of `seeds` seeds of a cell (`steps` env steps each, by default
-    the profile's budget) from measured env steps/s, from the
-    first source that has a measurement: its own runs (in RUNS, else in `archive`, which --plan reads
-    without restoring it), its --probe, then (flagged as a proxy) the runs and the probe of the same
-    model on the same task in another distractor / premap setting, then of the main model on the same
-    task (closest setting first: the model sets the cost, graph-free RGB-D only trains ~3x faster),
-    then the exploratory main model's probe."""
+    the profile's budget) from measured env steps/s, from the first source that has a measurement:
+    its own runs (in RUNS, else in `archive`, which --plan reads without restoring it), its --probe,
+    then (flagged as a proxy) the runs and the probe of the same model on the same task in another
+    distractor / premap setting, then of the main model on the same task (closest setting first: the
+    model sets the cost, graph-free RGB-D only trains ~3x faster), then the exploratory main model's
+    probe."""
     proxies = sorted(
         (c for c in GRID if c.task == cell.task and c.model in (cell.model, 'rgbd_sg_attn') and c != cell),
         key=lambda c: (c.model != cell.model, c.distractors != cell.distractors, c.premap != cell.premap),
@@ -154,9 +155,7 @@ def estimate(
 def _settings_mismatch(run_dir: Path, target) -> str:
     """'' when a measured run trained with the preset / camera / physics / PPO of the config to be estimated,
     else a flag naming what differs (the cost per env step depends on them)."""
-    from hron_jax.run_config import TrainConfig
-
-    cfg = TrainConfig.from_dict(json.loads((run_dir / 'config.json').read_text())['config'])
+    cfg = _run_config(run_dir)
     got, want = settings(cfg), settings(target)
     diff = [k for k in ('preset', 'camera', 'physics', 'ppo') if k in got and got[k] != want.get(k, got[k])]
     if not diff:
@@ -171,15 +170,25 @@ def _settings_mismatch(run_dir: Path, target) -> str:
 ROUGH = 'a rough figure'
 
 
+def _run_config(run_dir: Path):
+    from hron_jax.run_config import TrainConfig
+
+    return TrainConfig.from_dict(json.loads((run_dir / 'config.json').read_text())['config'])
+
+
 def runs_profile(runs: Path, done: list[tuple[Cell, dict]]) -> tuple[str, int | None] | None:
-    """(profile, budget) whose train.py commands give the settings (preset, camera, physics, PPO)
-    that every run of a table's done cells ran, so that its missing cells are run as its rows were:
-    a profile run per seed, and the runs' budget where they share one that is not the profile's
-    (else None; the full-budget report: profile cpu at 1,500,000 env steps). None when no profile
-    matches them all."""
-    dirs = [(c, d) for c, _ in done for d in cell_runs(runs, c)]
+    """(profile, budget) whose train.py commands give the settings (preset, camera, physics, graph
+    network, PPO) that every run of a table's done cells ran, so that its missing cells are run as
+    its rows were: a profile run per seed, and the runs' budget where they share one that is not the
+    profile's (else None; the full-budget report: profile cpu at 1,500,000 env steps). None when no
+    profile matches them all."""
+
+    def but_budget(cfg) -> dict:
+        return {k: v for k, v in settings(cfg).items() if k != 'budget'}
+
+    ran = [(c, but_budget(_run_config(d))) for c, _ in done for d in cell_runs(runs, c)]
     for profile in (p for p in PROFILES if p not in IN_PROCESS):
-        if dirs and not any(_settings_mismatch(d, profile_config(profile, c)) for c, d in dirs):
+        if ran and all(got == but_budget(profile_config(profile, c)) for c, got in ran):
             budgets = {b for _, f in done for b in f['budgets']}
             budget = budgets.pop() if len(budgets) == 1 else None
             return profile, None if budget == profile_steps(profile, done[0][0].task) else budget
