@@ -47,6 +47,7 @@ from hron_jax.reproduction.runs import (
     archive_of,
     cell_runs,
     collect_cell,
+    config_mismatch,
     eval_json,
     held_out_dir,
     is_main_report,
@@ -155,7 +156,9 @@ def estimate(
 def _settings_mismatch(run_dir: Path, target) -> str:
     """'' when a measured run trained with the preset / camera / physics / PPO of the config to be estimated,
     else a flag naming what differs (the cost per env step depends on them)."""
-    cfg = _run_config(run_dir)
+    from hron_jax.run_dir import load_config
+
+    cfg = load_config(run_dir)
     got, want = settings(cfg), settings(target)
     diff = [k for k in ('preset', 'camera', 'physics', 'ppo') if k in got and got[k] != want.get(k, got[k])]
     if not diff:
@@ -170,25 +173,15 @@ def _settings_mismatch(run_dir: Path, target) -> str:
 ROUGH = 'a rough figure'
 
 
-def _run_config(run_dir: Path):
-    from hron_jax.run_config import TrainConfig
-
-    return TrainConfig.from_dict(json.loads((run_dir / 'config.json').read_text())['config'])
-
-
 def runs_profile(runs: Path, done: list[tuple[Cell, dict]]) -> tuple[str, int | None] | None:
-    """(profile, budget) whose train.py commands give the settings (preset, camera, physics, graph
-    network, PPO) that every run of a table's done cells ran, so that its missing cells are run as
-    its rows were: a profile run per seed, and the runs' budget where they share one that is not the
-    profile's (else None; the full-budget report: profile cpu at 1,500,000 env steps). None when no
-    profile matches them all."""
-
-    def but_budget(cfg) -> dict:
-        return {k: v for k, v in settings(cfg).items() if k != 'budget'}
-
-    ran = [(c, but_budget(_run_config(d))) for c, _ in done for d in cell_runs(runs, c)]
+    """(profile, budget) whose train.py commands give the settings (preset, env, network, PPO:
+    runs.config_mismatch) that every run of a table's done cells ran, so that its missing cells are
+    run as its rows were: a profile run per seed, and the runs' budget where they share one that is
+    not the profile's (else None; the full-budget report: profile cpu at 1,500,000 env steps). None
+    when no profile matches them all."""
+    ran = [(c, d) for c, _ in done for d in cell_runs(runs, c)]
     for profile in (p for p in PROFILES if p not in IN_PROCESS):
-        if ran and all(got == but_budget(profile_config(profile, c)) for c, got in ran):
+        if ran and not any(config_mismatch(d, profile_config(profile, c)) for c, d in ran):
             budgets = {b for _, f in done for b in f['budgets']}
             budget = budgets.pop() if len(budgets) == 1 else None
             return profile, None if budget == profile_steps(profile, done[0][0].task) else budget

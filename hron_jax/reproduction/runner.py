@@ -2,7 +2,7 @@
 
 Per seed in subprocesses (profiles cpu and paper): run_cell_seed(cell, seed, runs, profile,
 episodes) trains one seed with train.py (a run short of its profile's budget is resumed; one
-trained under other settings is refused: config_mismatch), evaluates it with eval.py, records the
+trained under other settings is refused: runs.config_mismatch), evaluates it with eval.py, records the
 commands, wall times and machine in repro.json and evaluates the held-out houses (run_held_out).
 probe: a short paper-profile run whose env steps/s the cost estimates read. run_references: the
 random policy in every house of the generalisation table. Each process goes through run_logged
@@ -45,6 +45,7 @@ from hron_jax.reproduction.grid import (
 from hron_jax.reproduction.runs import (
     EVAL_DIR,
     ROOT,
+    config_mismatch,
     eval_argv,
     eval_json,
     held_out_dir,
@@ -73,19 +74,6 @@ def run_logged(argv: list[str], log: Path) -> float:
     if p.returncode:
         raise SystemExit(f'{shlex.join(argv)} failed ({p.returncode}); see {log}')
     return time.perf_counter() - t
-
-
-def config_mismatch(run_dir: Path, wanted) -> list[str]:
-    """Dotted fields (preset, env, network, ppo; budget and seed aside) where a run dir's config
-    differs from `wanted`; [] = resuming it continues the same settings."""
-    from hron_jax.run_config import TrainConfig, config_diff
-
-    cfg = TrainConfig.from_dict(json.loads((run_dir / 'config.json').read_text())['config'])
-    return [
-        k
-        for k in config_diff(cfg, wanted)
-        if (k == 'preset' or k.split('.')[0] in ('env', 'network', 'ppo')) and k != 'ppo.total_timesteps'
-    ]
 
 
 def run_cell_seed(cell: Cell, seed: int, runs: Path, profile: str, episodes: int) -> None:

@@ -16,7 +16,8 @@ Reading: cell_runs(runs, cell) -> its run dirs; num_seeds_of, steps_per_second (
 steps/s); collect_cell(runs, cell) -> a dict of its evaluated runs' per-seed SR / SPL (mean_std:
 mean, sample std, n), env steps, wall times, machines and configs in words (grid.describe_config;
 per aspect as rows are compared, grid.comparable_settings), or None; seed0_dir -> the run holding
-seed 0; run_summary(run_dir) -> one run's training windows and evaluations in lines of text.
+seed 0; run_summary(run_dir) -> one run's training windows and evaluations in lines of text;
+config_mismatch(run_dir, wanted) -> the fields where a run's settings are not `wanted`'s.
 Writes nothing but the archive and restored runs.
 """
 
@@ -225,10 +226,22 @@ def steps_per_second(run_dirs: list[Path]) -> float | None:
     return float(np.median(rates)) if rates else None
 
 
+def config_mismatch(run_dir: Path, wanted) -> list[str]:
+    """Dotted fields (preset, env, network, ppo; budget and seed aside) where a run dir's config
+    differs from `wanted`; [] = resuming it continues the same settings."""
+    from hron_jax.run_config import config_diff
+    from hron_jax.run_dir import load_config
+
+    return [
+        k
+        for k in config_diff(load_config(run_dir), wanted)
+        if (k == 'preset' or k.split('.')[0] in ('env', 'network', 'ppo')) and k != 'ppo.total_timesteps'
+    ]
+
+
 def collect_cell(runs: Path, cell: Cell) -> dict | None:
     """Aggregate a cell's evaluated runs: per-seed SR / SPL means, steps, wall times, configs."""
-    from hron_jax.run_config import TrainConfig
-    from hron_jax.run_dir import run_machines
+    from hron_jax.run_dir import load_config, run_machines
 
     seeds, steps, train_wall, proc_wall, configs, episodes, machines, loads = (
         [],
@@ -247,7 +260,7 @@ def collect_cell(runs: Path, cell: Cell) -> dict | None:
             continue
         e = json.loads(ev.read_text())
         s = e['summary']
-        cfg = TrainConfig.from_dict(json.loads((d / 'config.json').read_text())['config'])
+        cfg = load_config(d)
         rows = metric_rows(d)
         run_seeds = []
         for i, (sr, spl) in enumerate(zip(s['success']['per_seed'], s['spl']['per_seed'])):
